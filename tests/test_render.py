@@ -1,0 +1,218 @@
+import cv2
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import ConvexHull
+
+from torchfit import render
+from torchfit.camera import Camera, project
+from torchfit.render import (RenderMesh, contour_lines, coverage_from_lines, crop_windows, full_window,
+                             render_silhouettes, window_lines)
+from torchfit.rotation import axis_angle_to_quat, quat_to_matrix
+from torchfit.shape import load_shape
+
+F64 = torch.float64
+SHAPES = {name: load_shape(primitive=name, density=600.0) for name in ("tshape", "box", "cylinder")}
+
+
+@pytest.fixture(autouse=True, params=[False], ids=["eager"])
+def eager_kernels(request):
+    render.set_compile(request.param)
+    yield
+
+
+def _pose(seed, depth, dtype=torch.float32):
+    gen = torch.Generator().manual_seed(seed)
+    rotvec = torch.randn(3, generator=gen, dtype=dtype) * 2
+    trans = torch.tensor([0.02, -0.01, depth], dtype=dtype) + 0.01 * torch.randn(3, generator=gen, dtype=dtype)
+    return rotvec, trans
+
+
+def _reference_coverage(shape, camera, rotvec, trans, window, size, sigma):
+    """Slow per-pixel loop: scipy's 2D convex hull of each part's projected vertices, signed
+    distance = max over hull edges, soft union over parts. Independent of contour extraction."""
+    rot = quat_to_matrix(axis_angle_to_quat(rotvec))
+    u0, v0, stride = window
+    height, width = size
+    out = torch.zeros(height, width, dtype=rotvec.dtype)
+    polygons = []
+    for part in shape.parts:
+        verts = torch.as_tensor(part.vertices, dtype=rotvec.dtype) @ rot.T + trans
+        pixels, _ = project(camera, verts)
+        hull = ConvexHull(pixels.detach().numpy()).vertices  # counter-clockwise in (u, v)
+        polygons.append(pixels[hull])
+    for row in range(height):
+        for col in range(width):
+            u, v = u0 + col * stride, v0 + row * stride
+            outside = torch.ones((), dtype=rotvec.dtype)
+            for poly in polygons:
+                dists = []
+                for k in range(len(poly)):
+                    a, b = poly[k], poly[(k + 1) % len(poly)]
+                    edge = b - a
+                    normal = torch.stack((edge[1], -edge[0])) / edge.norm()
+                    dists.append(normal[0] * (u - a[0]) + normal[1] * (v - a[1]))
+                dist = torch.stack(dists).max()  # scipy orders hull vertices counter-clockwise
+                outside = outside * torch.sigmoid(dist / (sigma * stride))
+            out[row, col] = 1 - outside
+    return out
+
+
+@pytest.mark.parametrize("name", ["tshape", "box", "cylinder"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_matches_slow_per_pixel_reference_values_and_gradients(name, seed):
+    shape = SHAPES[name]
+    camera = Camera(40.0, 40.0, 3.5, 3.5, 8, 8)
+    rotvec, trans = _pose(seed, 1.5, F64)
+    window = (0.3, -0.2, 0.9)
+    mesh = RenderMesh.from_shape(shape, F64)
+    rotvec.requires_grad_()
+    trans.requires_grad_()
+    weights = torch.rand(8, 8, generator=torch.Generator().manual_seed(seed), dtype=F64)
+
+    ours = render_silhouettes(mesh, camera, quat_to_matrix(axis_angle_to_quat(rotvec)).view(1, 1, 3, 3),
+                              trans.view(1, 1, 3), torch.tensor(window, dtype=F64).view(1, 1, 3),
+                              size=(8, 8), sigma=0.7)[0, 0]
+    grads = torch.autograd.grad((ours * weights).sum(), (rotvec, trans))
+    ref = _reference_coverage(shape, camera, rotvec, trans, window, (8, 8), 0.7)
+    ref_grads = torch.autograd.grad((ref * weights).sum(), (rotvec, trans))
+    torch.testing.assert_close(ours, ref, atol=1e-10, rtol=1e-8)
+    for g, r in zip(grads, ref_grads):
+        torch.testing.assert_close(g, r, atol=1e-8, rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["tshape", "box", "cylinder"])
+def test_hard_silhouette_matches_opencv_fillpoly(name):
+    shape = SHAPES[name]
+    camera = Camera(300.0, 300.0, 127.5, 127.5, 256, 256)
+    mesh = RenderMesh.from_shape(shape)
+    scale = 8  # fillPoly dilates by about half a pixel: draw at 8x and average down
+    for seed in range(3):
+        rotvec, trans = _pose(seed, 0.45)
+        rot = quat_to_matrix(axis_angle_to_quat(rotvec))
+        ours = render_silhouettes(mesh, camera, rot.view(1, 1, 3, 3), trans.view(1, 1, 3),
+                                  full_window(camera, 1, 1), size=(256, 256), sigma=None)[0, 0].numpy() > 0.5
+        pixels, _ = project(camera, torch.as_tensor(shape.mesh.vertices, dtype=torch.float32) @ rot.T + trans)
+        canvas = np.zeros((256 * scale, 256 * scale), np.uint8)
+        for tri in (pixels.numpy() * scale + (scale - 1) / 2)[shape.mesh.faces]:
+            cv2.fillPoly(canvas, [np.round(tri * 16).astype(np.int32)], 1, shift=4)
+        theirs = cv2.resize(canvas.astype(np.float32), (256, 256), interpolation=cv2.INTER_AREA) > 0.5
+        iou = (ours & theirs).sum() / (ours | theirs).sum()
+        assert iou >= 0.99, (name, seed, iou)
+
+
+def test_soft_converges_to_hard_as_sigma_shrinks():
+    shape = SHAPES["tshape"]
+    camera = Camera(100.0, 100.0, 31.5, 31.5, 64, 64)
+    mesh = RenderMesh.from_shape(shape)
+    rotvec, trans = _pose(3, 0.6)
+    rot = quat_to_matrix(axis_angle_to_quat(rotvec)).view(1, 1, 3, 3)
+    window = full_window(camera, 1, 1)
+    hard = render_silhouettes(mesh, camera, rot, trans.view(1, 1, 3), window, size=(64, 64), sigma=None)
+    soft = render_silhouettes(mesh, camera, rot, trans.view(1, 1, 3), window, size=(64, 64), sigma=0.01)
+    assert (hard - soft).abs().gt(0.5).float().mean() < 0.002
+    assert soft.min() >= 0 and soft.max() <= 1
+
+
+def test_rasteriser_gradcheck_float64():
+    torch.manual_seed(0)
+    angles = torch.rand(2, 2, 5, dtype=F64) * 6.28
+    offsets = -3.0 + torch.rand(2, 2, 5, dtype=F64) + 3.5 * (torch.cos(angles) + torch.sin(angles))
+    lines = torch.stack((torch.cos(angles), torch.sin(angles), offsets), -1).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: coverage_from_lines(x, 7, 6, sigma=0.8, budget=200), (lines,))
+
+
+def test_end_to_end_gradcheck_from_initial_state_to_silhouette_loss():
+    from torchfit.dynamics import RigidBody, simulate
+
+    shape = SHAPES["box"]
+    camera = Camera(60.0, 60.0, 5.5, 5.5, 12, 12)
+    mesh = RenderMesh.from_shape(shape, F64)
+    body = RigidBody.from_shape(shape, F64)
+    times = torch.linspace(0, 0.05, 3, dtype=F64)
+    target = torch.zeros(1, 3, 12, 12, dtype=F64)
+    target[..., 3:8, 2:9] = 1.0
+    state = torch.tensor([[0.01, 0.0, 1.0, 0.9, 0.2, 0.3, 0.25, 0.3, -0.5, 0.1, 3.0, -2.0, 1.0]], dtype=F64)
+    state[:, 3:7] /= state[:, 3:7].norm()
+    state.requires_grad_()
+
+    def loss(s):
+        traj = simulate(s, times, body, torch.tensor([0.0, 9.81, 0.0], dtype=F64))
+        cover = render_silhouettes(mesh, camera, traj.rot, traj.position, full_window(camera, 1, 3, dtype=F64),
+                                   size=(12, 12), sigma=1.0)
+        return ((cover - target) ** 2).sum()
+
+    # a unit-quaternion perturbation is not unit: check the gradient w.r.t. the other entries
+    def loss_free(position_velocity):
+        s = torch.cat((position_velocity[:, :3], state[:, 3:7].detach(), position_velocity[:, 3:]), -1)
+        return loss(s)
+
+    free = torch.cat((state[:, :3], state[:, 7:]), -1).detach().requires_grad_()
+    assert torch.autograd.gradcheck(loss_free, (free,), atol=1e-6, rtol=1e-4)
+
+
+def test_crop_window_equals_the_same_region_of_a_full_render():
+    shape = SHAPES["tshape"]
+    camera = Camera(200.0, 200.0, 63.5, 63.5, 128, 128)
+    mesh = RenderMesh.from_shape(shape)
+    rotvec, trans = _pose(5, 0.8)
+    rot = quat_to_matrix(axis_angle_to_quat(rotvec)).view(1, 1, 3, 3)
+    full = render_silhouettes(mesh, camera, rot, trans.view(1, 1, 3), full_window(camera, 1, 1),
+                              size=(128, 128), sigma=0.5)[0, 0]
+    window = torch.tensor([40.0, 30.0, 2.0]).view(1, 1, 3)
+    crop = render_silhouettes(mesh, camera, rot, trans.view(1, 1, 3), window, size=(32, 32), sigma=0.25)[0, 0]
+    torch.testing.assert_close(crop, full[30:94:2, 40:104:2], atol=1e-5, rtol=0)
+
+
+def test_crop_windows_cover_the_box():
+    boxes = torch.tensor([[10.0, 20.0, 50.0, 40.0]])
+    window = crop_windows(boxes, (32, 32), margin=0.25)[0]
+    u0, v0, stride = window.tolist()
+    assert u0 <= 10.0 and u0 + 31 * stride >= 50.0
+    assert v0 <= 20.0 and v0 + 31 * stride >= 40.0
+
+
+def test_chunking_does_not_change_results_and_shapes():
+    shape = SHAPES["tshape"]
+    camera = Camera(200.0, 200.0, 63.5, 63.5, 128, 128)
+    mesh = RenderMesh.from_shape(shape)
+    torch.manual_seed(0)
+    rot = quat_to_matrix(axis_angle_to_quat(torch.randn(3, 4, 3))).requires_grad_()
+    trans = (torch.tensor([0.0, 0.0, 0.8]) + 0.02 * torch.randn(3, 4, 3)).requires_grad_()
+    boxes = torch.tensor([30.0, 30.0, 100.0, 100.0]).expand(3, 4, 4)
+    windows = crop_windows(boxes, (24, 20))
+    outs = []
+    for budget in (1 << 21, 500):
+        cover = render_silhouettes(mesh, camera, rot, trans, windows, size=(24, 20), sigma=1.0, budget=budget)
+        assert cover.shape == (3, 4, 24, 20)
+        grads = torch.autograd.grad(cover.square().sum(), (rot, trans))
+        outs.append((cover, *grads))
+    for a, b in zip(*outs):
+        torch.testing.assert_close(a, b)
+
+
+def test_shape_behind_camera_renders_empty_and_finite():
+    shape = SHAPES["box"]
+    camera = Camera(100.0, 100.0, 31.5, 31.5, 64, 64)
+    mesh = RenderMesh.from_shape(shape)
+    trans = torch.tensor([0.0, 0.0, -1.0]).view(1, 1, 3).requires_grad_()
+    cover = render_silhouettes(mesh, camera, torch.eye(3).view(1, 1, 3, 3), trans, full_window(camera, 1, 1),
+                               size=(64, 64), sigma=1.0)
+    assert cover.max() < 1e-6
+    cover.sum().backward()
+    assert torch.isfinite(trans.grad).all()
+
+
+def test_bad_render_inputs():
+    shape = SHAPES["box"]
+    camera = Camera(100.0, 100.0, 31.5, 31.5, 64, 64)
+    mesh = RenderMesh.from_shape(shape)
+    rot, trans, window = torch.eye(3).view(1, 1, 3, 3), torch.zeros(1, 1, 3), full_window(camera, 1, 1)
+    with pytest.raises(ValueError, match=r"rot must have shape \(B, T, 3, 3\)"):
+        render_silhouettes(mesh, camera, torch.eye(3), trans, window, size=(8, 8), sigma=1.0)
+    with pytest.raises(ValueError, match="trans must have shape"):
+        render_silhouettes(mesh, camera, rot, torch.zeros(1, 3), window, size=(8, 8), sigma=1.0)
+    with pytest.raises(ValueError, match="sigma must be a positive"):
+        render_silhouettes(mesh, camera, rot, trans, window, size=(8, 8), sigma=0.0)
+    with pytest.raises(ValueError, match="size must be"):
+        render_silhouettes(mesh, camera, rot, trans, window, size=(0, 8), sigma=1.0)
