@@ -1,4 +1,4 @@
-"""Checks of the shipped MuJoCo test recordings (data/recordings).
+"""Checks of the shipped MuJoCo test recordings (torchfit/recordings).
 
 Everything but the last test needs only numpy / cv2 / trimesh / scipy (no MuJoCo,
 no torchfit): the ground truth is checked against the mesh, the masks and the laws
@@ -20,7 +20,7 @@ import pytest
 import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / "data" / "recordings"
+DATA = ROOT / "torchfit" / "recordings"
 SCRIPT = ROOT / "experiments" / "recordings" / "make_recordings.py"
 SHIPPED = ["tshape", "tshape_intermediate", "box_fast", "cylinder", "tshape_small"]
 

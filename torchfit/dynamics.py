@@ -102,8 +102,41 @@ class Trajectory:
         return torch.cat((self.position, self.quat, self.velocity, self.angular_velocity), dim=-1)
 
 
+def _quat_basis() -> tuple[Tensor, Tensor]:
+    """Constant maps that turn quaternion algebra into two matrix products (few, large ops).
+
+    ``rotation(q) = (q qᵀ).flat @ ROT`` for unit q (the homogeneous form of the rotation
+    matrix), and ``½ (0, ω) ⊗ q = (q @ XI).view(4, 3) @ ω``.
+    """
+    rot = torch.zeros(4, 4, 9, dtype=torch.float64)
+    w, x, y, z = range(4)
+    entries = {  # R_ij as sums of signed products q_a q_b
+        0: [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)],
+        1: [(x, y, 2), (w, z, -2)], 2: [(x, z, 2), (w, y, 2)],
+        3: [(x, y, 2), (w, z, 2)], 4: [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)],
+        5: [(y, z, 2), (w, x, -2)], 6: [(x, z, 2), (w, y, -2)], 7: [(y, z, 2), (w, x, 2)],
+        8: [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
+    }
+    for index, terms in entries.items():
+        for a, b, sign in terms:
+            rot[a, b, index] += sign
+    xi = torch.zeros(4, 4, 3, dtype=torch.float64)  # xi[a, row, col]: q_a's coefficient
+    for row, col, a, sign in [(0, 0, x, -1), (0, 1, y, -1), (0, 2, z, -1),
+                              (1, 0, w, 1), (1, 1, z, 1), (1, 2, y, -1),
+                              (2, 0, z, -1), (2, 1, w, 1), (2, 2, x, 1),
+                              (3, 0, y, 1), (3, 1, x, -1), (3, 2, w, 1)]:
+        xi[a, row, col] = 0.5 * sign
+    return rot.reshape(16, 9), xi.reshape(4, 12)
+
+
+_ROT, _XI = _quat_basis()
+
+
 class FreeFlight(nn.Module):
     """ODE right-hand side on the internal centre-of-mass state (B, 13).
+
+    Written as a handful of batched matrix products: with small batches the integrator's cost
+    is the number of tensor operations, not their size.
 
     Args:
         body: mass properties.
@@ -116,29 +149,43 @@ class FreeFlight(nn.Module):
         self.body = body
         self.gravity = gravity
         self.effects = nn.ModuleList(effects)
-        self.inertia_inv = torch.linalg.inv(body.inertia)
+        dtype, device = body.inertia.dtype, body.inertia.device
+        self.inertia_t = body.inertia.transpose(-1, -2)
+        self.inertia_inv_t = torch.linalg.inv(body.inertia).transpose(-1, -2)
+        self.rot_basis = _ROT.to(dtype=dtype, device=device)
+        self.xi_basis = _XI.to(dtype=dtype, device=device)
 
     def forward(self, time: Tensor, y: Tensor) -> Tensor:
-        position, quat, velocity, omega = y[:, 0:3], y[:, 3:7], y[:, 7:10], y[:, 10:13]
-        rot = quat_to_matrix(quat)  # (B, 3, 3), normalises the quaternion
+        batch = y.shape[0]
+        velocity, omega = y[:, 7:10], y[:, 10:13]
+        quat = y[:, 3:7]
+        unit = quat / quat.norm(dim=-1, keepdim=True)
+        outer = (unit.unsqueeze(-1) * unit.unsqueeze(-2)).reshape(batch, 16)
+        rot = (outer @ self.rot_basis).view(batch, 3, 3)  # mesh axes -> world
         acceleration = self.gravity.expand_as(velocity)
-        torque = torch.zeros_like(omega)
+        omega_body = (omega.unsqueeze(1) @ rot).squeeze(1)  # Rᵀ ω
+        momentum_body = _matvec(omega_body, self.inertia_t)
+        rhs = -torch.cross(omega_body, momentum_body, dim=-1)
         if len(self.effects):
-            state = FlightState(time, position, rot, velocity, omega, self.body.mass)
+            state = FlightState(time, y[:, 0:3], rot, velocity, omega, self.body.mass)
             mass = self.body.mass.unsqueeze(-1) if self.body.mass.dim() == 1 else self.body.mass
+            torque = torch.zeros_like(omega)
             for effect in self.effects:
                 force, tau = effect(state)
                 acceleration = acceleration + force / mass
                 torque = torque + tau
-        # Euler's equations in body axes: I ω̇_b = τ_b − ω_b × I ω_b, then back to the world.
-        omega_body = (rot.transpose(-1, -2) @ omega.unsqueeze(-1)).squeeze(-1)
-        torque_body = (rot.transpose(-1, -2) @ torque.unsqueeze(-1)).squeeze(-1)
-        momentum_body = (self.body.inertia @ omega_body.unsqueeze(-1)).squeeze(-1)
-        rhs = torque_body - torch.cross(omega_body, momentum_body, dim=-1)
-        domega = rot @ (self.inertia_inv @ rhs.unsqueeze(-1))
-        omega_quat = torch.cat((torch.zeros_like(omega[:, :1]), omega), dim=-1)
-        dquat = 0.5 * quat_multiply(omega_quat, quat)
-        return torch.cat((velocity, dquat, acceleration, domega.squeeze(-1)), dim=-1)
+            rhs = rhs + (torque.unsqueeze(1) @ rot).squeeze(1)
+        # Euler's equations in body axes: I ω̇_b = τ_b − ω_b × I ω_b, then back to the world
+        domega = (rot @ _matvec(rhs, self.inertia_inv_t).unsqueeze(-1)).squeeze(-1)
+        dquat = ((quat @ self.xi_basis).view(batch, 4, 3) @ omega.unsqueeze(-1)).squeeze(-1)
+        return torch.cat((velocity, dquat, acceleration, domega), dim=-1)
+
+
+def _matvec(vectors: Tensor, matrix_t: Tensor) -> Tensor:
+    """``M v`` for (B, 3) vectors and a shared (3, 3) or per-candidate (B, 3, 3) ``Mᵀ``."""
+    if matrix_t.dim() == 2:
+        return vectors @ matrix_t
+    return (vectors.unsqueeze(1) @ matrix_t).squeeze(1)
 
 
 def _lever(quat: Tensor, com: Tensor) -> Tensor:
@@ -151,7 +198,7 @@ def _subdivided_grid(step_size: float):
 
     def constructor(func, y0, times: Tensor) -> Tensor:
         gaps = times[1:] - times[:-1]
-        counts = torch.ceil(gaps / step_size - 1e-9).clamp(min=1).long().tolist()
+        counts = torch.ceil(gaps.abs() / step_size - 1e-9).clamp(min=1).long().tolist()
         pieces = [times[:1]]
         for i, count in enumerate(counts):
             fractions = torch.arange(1, count + 1, dtype=times.dtype, device=times.device) / count
@@ -187,7 +234,7 @@ def integrate(
     if method in FIXED_STEP_METHODS:
         if step_size is None:
             gaps = (times[1:] - times[:-1]) if len(times) > 1 else times.new_ones(1)
-            step_size = float(gaps.min()) / 4
+            step_size = float(gaps.abs().min()) / 4
         options = {"grid_constructor": _subdivided_grid(step_size)}
     else:
         options = None

@@ -229,26 +229,35 @@ def _reduce_convex(mesh: trimesh.Trimesh, max_vertices: int) -> trimesh.Trimesh:
     return reduced
 
 
-def _render_parts(mesh: trimesh.Trimesh, max_vertices: int, max_triangles: int) -> list[trimesh.Trimesh]:
-    """Convex pieces whose union is the mesh: the hull when convex, else a decomposition."""
-    hull = mesh.convex_hull
-    if mesh.is_watertight and abs(hull.volume - mesh.volume) <= 1e-3 * hull.volume:
-        return [mesh]
-    try:  # approximate convex decomposition needs the optional package vhacdx
-        pieces = mesh.convex_decomposition()
-        pieces = pieces if isinstance(pieces, list) else [pieces]
-        pieces = [trimesh.Trimesh(**p) if isinstance(p, dict) else p for p in pieces]
-        log.info("non-convex mesh: rendering %d convex pieces (V-HACD)", len(pieces))
-        return pieces
-    except Exception as err:  # noqa: BLE001 - any failure falls back to triangles, logged
-        if len(mesh.faces) > max_triangles:
-            raise ValueError(
-                f"non-convex mesh with {len(mesh.faces)} triangles and no convex decomposition "
-                f"({err}); install vhacdx or simplify the mesh below {max_triangles} triangles"
-            ) from None
-        log.warning("non-convex mesh and no convex decomposition (%s): rendering its %d "
-                    "triangles one by one (slower, faint seams at shared edges)", err, len(mesh.faces))
-        return [trimesh.Trimesh(mesh.vertices[f], [[0, 1, 2]], process=False) for f in mesh.faces]
+def _is_convex(mesh: trimesh.Trimesh) -> bool:
+    return mesh.is_watertight and abs(mesh.convex_hull.volume - mesh.volume) <= 1e-3 * mesh.convex_hull.volume
+
+
+def _render_parts(mesh: trimesh.Trimesh, max_triangles: int) -> list[trimesh.Trimesh]:
+    """Convex pieces whose union is the mesh: its convex bodies, else a decomposition of each."""
+    bodies = mesh.split(only_watertight=False) if mesh.body_count > 1 else [mesh]
+    parts: list[trimesh.Trimesh] = []
+    for body in bodies:
+        if _is_convex(body):
+            parts.append(body)
+            continue
+        try:  # approximate convex decomposition needs the optional package vhacdx
+            pieces = body.convex_decomposition()
+            pieces = pieces if isinstance(pieces, list) else [pieces]
+            pieces = [trimesh.Trimesh(**p) if isinstance(p, dict) else p for p in pieces]
+            log.info("non-convex body: rendering %d convex pieces (V-HACD)", len(pieces))
+            parts.extend(pieces)
+        except Exception as err:  # noqa: BLE001 - any failure falls back to triangles, logged
+            if len(body.faces) > max_triangles:
+                raise ValueError(
+                    f"non-convex mesh with {len(body.faces)} triangles and no convex decomposition "
+                    f"({err}); install vhacdx or simplify the mesh below {max_triangles} triangles"
+                ) from None
+            log.warning("non-convex mesh and no convex decomposition (%s): rendering its %d "
+                        "triangles one by one (slower, and soft edges bleed at sliver corners)",
+                        err, len(body.faces))
+            parts.extend(trimesh.Trimesh(body.vertices[f], [[0, 1, 2]], process=False) for f in body.faces)
+    return parts
 
 
 def make_shape(
@@ -316,7 +325,7 @@ def make_shape(
     if not np.allclose(tensor, tensor.T, rtol=1e-6, atol=1e-12) or np.linalg.eigvalsh(tensor).min() <= 0:
         raise ValueError(f"inertia must be symmetric positive definite, got {tensor.tolist()}")
     meshes = render_meshes if render_meshes is not None else _render_parts(
-        mesh if mesh.is_watertight else mesh.convex_hull, max_part_vertices, max_triangles)
+        mesh if mesh.is_watertight else mesh.convex_hull, max_triangles)
     parts = []
     for piece in meshes:
         if len(piece.faces) == 1:

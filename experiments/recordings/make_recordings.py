@@ -10,11 +10,11 @@ MuJoCo's own segmentation render of that instant (IoU >= 0.95 on every frame).
 
 Regenerate the shipped set (from the repository root)::
 
-    MUJOCO_GL=osmesa python experiments/recordings/make_recordings.py --out data/recordings
+    MUJOCO_GL=osmesa python experiments/recordings/make_recordings.py --out torchfit/recordings
 
 Other uses::
 
-    ... make_recordings.py --out data/recordings --only tshape_small
+    ... make_recordings.py --out torchfit/recordings --only tshape_small
     ... make_recordings.py --out /tmp/rec --spec name=mybox shape=box spin_rate=5.0 seed=3
 
 or from Python::
@@ -73,8 +73,8 @@ class RecordingSpec:
 
     name: str = "tshape"
     shape: str = "tshape"  # "tshape" | "box" | "cylinder"
-    width: int = 320
-    height: int = 240
+    width: int = 640
+    height: int = 480
     fps: float = 60.0
     n_frames: int = 45
     fovy_deg: float = 40.0
@@ -89,7 +89,7 @@ class RecordingSpec:
     spin_rate: float = 10.0  # rad/s
     spin_axis: str = "major"  # "major" | "intermediate" | "minor" | "random"
     spin_wobble: float = 0.2  # off-axis fraction of the spin
-    depth_range: tuple = (1.7, 2.3)  # m, start depth of the COM
+    depth_range: tuple = (1.2, 1.5)  # m, start depth of the COM
     margin_px: int = 3
     max_tries: int = 200
     # object
@@ -116,7 +116,7 @@ class RecordingSpec:
 
 
 def shipped_specs() -> list[RecordingSpec]:
-    """The recordings shipped in data/recordings."""
+    """The recordings shipped in torchfit/recordings."""
     return [
         # main: T-handle, tumbling mostly about its major (stable) axis, plus some
         RecordingSpec(name="tshape", shape="tshape", spin_rate=10.0, spin_axis="major",
@@ -128,10 +128,10 @@ def shipped_specs() -> list[RecordingSpec]:
         RecordingSpec(name="box_fast", shape="box", spin_rate=20.0, spin_axis="random",
                       tilt_deg=12.0, roll_deg=3.0, seed=3),
         RecordingSpec(name="cylinder", shape="cylinder", spin_rate=3.0, spin_axis="random",
-                      tilt_deg=6.0, roll_deg=-6.0, fovy_deg=36.0, seed=4),
+                      tilt_deg=6.0, roll_deg=-6.0, depth_range=(1.5, 1.8), seed=4),
         # tiny, for fast unit tests
-        RecordingSpec(name="tshape_small", shape="tshape", width=96, height=72, fps=30.0,
-                      n_frames=12, fovy_deg=40.0, depth_range=(1.1, 1.3),
+        RecordingSpec(name="tshape_small", shape="tshape", width=160, height=120, fps=30.0,
+                      n_frames=12, fovy_deg=40.0, depth_range=(0.9, 1.0),
                       spin_rate=9.0, spin_axis="major", spin_wobble=0.3,
                       tilt_deg=10.0, roll_deg=5.0, seed=5),
     ]
@@ -780,7 +780,7 @@ def _parse_spec_args(items: Sequence[str]) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default="data/recordings", help="output folder")
+    ap.add_argument("--out", default="torchfit/recordings", help="output folder")
     ap.add_argument("--only", action="append", default=[],
                     help="make only this shipped recording (repeatable, or comma-separated)")
     ap.add_argument("--spec", nargs="+", metavar="KEY=VALUE",

@@ -1,0 +1,272 @@
+"""Tests of the video front end (torchfit.video) on the shipped MuJoCo recordings."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from torchfit.camera import Camera
+from torchfit.video import (
+    Observation,
+    SegmentationSettings,
+    contact_sheet,
+    load_observation,
+    read_frames,
+)
+
+DATA = Path(__file__).resolve().parents[1] / "torchfit" / "recordings"
+SHIPPED = ["tshape", "tshape_intermediate", "box_fast", "cylinder", "tshape_small"]
+
+
+def true_masks(name: str) -> np.ndarray:
+    with np.load(DATA / name / "masks.npz") as archive:
+        return archive["masks"].astype(bool)
+
+
+def iou(masks: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(T,) intersection over union of two (T, H, W) bool stacks."""
+    union = (masks | truth).sum(axis=(1, 2))
+    return (masks & truth).sum(axis=(1, 2)) / np.maximum(union, 1)
+
+
+@pytest.fixture(scope="module")
+def observations() -> dict[str, Observation]:
+    return {name: load_observation(DATA / name / "video.mp4", camera=DATA / name / "camera.json")
+            for name in SHIPPED}
+
+
+def write_video(path: Path, frames: np.ndarray, fps: float = 30.0) -> Path:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps,
+                             (frames.shape[2], frames.shape[1]))
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    return path
+
+
+# --- segmentation quality ------------------------------------------------------------
+
+# (median, worst frame) floors measured with experiments/segmentation_iou.py on the 640x480
+# recordings; tshape_small (160x120, ~40 px objects) is a fixture for fast fit tests only
+FLOORS = {
+    "tshape": (0.91, 0.84),
+    "tshape_intermediate": (0.92, 0.85),
+    "box_fast": (0.94, 0.91),
+    "cylinder": (0.95, 0.93),
+    "tshape_small": (0.75, 0.65),
+}
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_segmentation_iou(observations, name):
+    obs = observations[name]
+    truth = true_masks(name)
+    scores = iou(obs.masks, truth)[obs.used]
+    median_floor, worst_floor = FLOORS[name]
+    assert np.median(scores) >= median_floor
+    assert scores.min() >= worst_floor
+
+
+@pytest.mark.parametrize("name", ["box_fast", "cylinder"])
+def test_iou_target_every_frame(observations, name):
+    obs = observations[name]
+    assert iou(obs.masks, true_masks(name))[obs.used].min() >= 0.9
+
+
+@pytest.mark.parametrize("name", ["tshape", "box_fast"])
+def test_boxes_and_fields(observations, name):
+    obs = observations[name]
+    truth = json.loads((DATA / name / "truth.json").read_text())
+    T = len(obs.masks)
+    assert obs.boxes.shape == (T, 4) and obs.used.shape == (T,) and len(obs.reasons) == T
+    assert obs.fps == truth["fps"]
+    np.testing.assert_array_equal(obs.frame_indices, np.arange(T))
+    error = np.abs(obs.boxes - np.array(truth["per_frame"]["bbox"], float))  # (T, 4) pixels
+    assert np.median(error) <= 1.5 and error.max() <= 5
+    assert not obs.from_cache and obs.kind == "video"
+    assert obs.background.shape == obs.masks.shape[1:] + (3,)
+
+
+def test_mog2_background():
+    name = "tshape_small"
+    obs = load_observation(DATA / name / "video.mp4", method="mog2")
+    assert np.median(iou(obs.masks, true_masks(name))) >= 0.5
+
+
+# --- frame range, fps ----------------------------------------------------------------
+
+
+def test_frame_range_and_fps_override():
+    obs = load_observation(DATA / "tshape_small" / "video.mp4", start=2, stop=10, fps=25.0)
+    assert obs.masks.shape[0] == 8 and obs.fps == 25.0
+    np.testing.assert_array_equal(obs.frame_indices, np.arange(2, 10))
+    np.testing.assert_allclose(obs.times, np.arange(8) / 25.0)
+
+
+# --- cache ---------------------------------------------------------------------------
+
+
+def test_cache(tmp_path):
+    video = DATA / "tshape_small" / "video.mp4"
+    first = load_observation(video, cache_dir=tmp_path)
+    second = load_observation(video, cache_dir=tmp_path)
+    assert not first.from_cache and second.from_cache
+    np.testing.assert_array_equal(first.masks, second.masks)
+    np.testing.assert_array_equal(first.boxes, second.boxes)
+    assert first.reasons == second.reasons and first.fps == second.fps
+    assert len(list(tmp_path.glob("*.npz"))) == 1
+    other = load_observation(video, cache_dir=tmp_path, settings=SegmentationSettings(noise_sigmas=5))
+    assert not other.from_cache  # the settings are part of the key
+
+
+# --- folders -------------------------------------------------------------------------
+
+
+def test_mask_folder(tmp_path):
+    truth = true_masks("tshape_small")
+    for t, mask in enumerate(truth):
+        cv2.imwrite(str(tmp_path / f"mask_{t:03d}.png"), mask.astype(np.uint8) * 255)
+    for kind in ("auto", "masks"):
+        obs = load_observation(tmp_path, kind=kind, fps=30.0)
+        assert obs.kind == "masks"
+        np.testing.assert_array_equal(obs.masks, truth)
+        assert obs.used.all()
+
+
+def test_image_folder(tmp_path):
+    frames = read_frames(DATA / "tshape_small" / "video.mp4", np.arange(12))
+    for t, frame in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"frame_{t:03d}.png"), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    from_images = load_observation(tmp_path, fps=30.0)
+    from_video = load_observation(DATA / "tshape_small" / "video.mp4")
+    assert from_images.kind == "images"
+    np.testing.assert_array_equal(from_images.masks, from_video.masks)
+
+
+# --- undistortion --------------------------------------------------------------------
+
+
+def test_undistortion(tmp_path):
+    truth = true_masks("tshape_small")
+    for t, mask in enumerate(truth):
+        cv2.imwrite(str(tmp_path / f"{t:03d}.png"), mask.astype(np.uint8) * 255)
+    base = json.loads((DATA / "tshape_small" / "camera.json").read_text())
+    plain = Camera(**base, dist_coeffs=(0.0, 0.0, 0.0, 0.0))
+    obs = load_observation(tmp_path, kind="masks", fps=30.0, camera=plain)
+    np.testing.assert_array_equal(obs.masks, truth)
+    warped = Camera(**base, dist_coeffs=(-0.4, 0.2, 0.0, 0.0))
+    obs = load_observation(tmp_path, kind="masks", fps=30.0, camera=warped)
+    assert obs.masks.shape == truth.shape
+    assert (obs.masks != truth).any()
+
+
+# --- contact sheet -------------------------------------------------------------------
+
+
+def test_contact_sheet(tmp_path, observations):
+    obs = observations["tshape_small"]
+    path = contact_sheet(obs, None, tmp_path / "sheet" / "masks.png", n=6)
+    sheet = cv2.imread(str(path))
+    assert sheet is not None and sheet.shape[1] >= 3 * 320  # 96-px frames upscaled
+    frames = read_frames(obs.source, obs.frame_indices)
+    assert contact_sheet(obs, frames, tmp_path / "given.png").is_file()
+
+
+# --- bad input -----------------------------------------------------------------------
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ValueError, match="does not exist"):
+        load_observation(tmp_path / "nope.mp4")
+
+
+def test_unreadable_file(tmp_path):
+    path = tmp_path / "notes.mp4"
+    path.write_text("not a video")
+    with pytest.raises(ValueError, match="could not read video"):
+        load_observation(path)
+
+
+def test_video_without_frames(tmp_path):
+    path = write_video(tmp_path / "empty.mp4", np.zeros((0, 48, 64, 3), np.uint8))
+    with pytest.raises(ValueError, match="no frames"):
+        load_observation(path)
+    with pytest.raises(ValueError, match="no frames"):
+        load_observation(tmp_path, fps=30.0)  # a folder without images
+
+
+def test_static_video(tmp_path):
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 255, (48, 64, 3), dtype=np.uint8)
+    path = write_video(tmp_path / "static.mp4", np.repeat(frame[None], 10, axis=0))
+    with pytest.raises(ValueError, match="nothing moves"):
+        load_observation(path)
+
+
+def test_size_mismatch(tmp_path):
+    camera = Camera.from_file(DATA / "tshape" / "camera.json")  # 640x480
+    with pytest.raises(ValueError, match="160x120 but the camera says 640x480"):
+        load_observation(DATA / "tshape_small" / "video.mp4", camera=camera)
+    for t, mask in enumerate(true_masks("tshape_small")):
+        cv2.imwrite(str(tmp_path / f"{t:03d}.png"), mask.astype(np.uint8) * 255)
+    with pytest.raises(ValueError, match="but the camera says"):
+        load_observation(tmp_path, fps=30.0, camera=camera)
+
+
+def test_principal_point_outside_image(tmp_path):
+    base = json.loads((DATA / "tshape_small" / "camera.json").read_text())
+    path = tmp_path / "camera.json"
+    path.write_text(json.dumps({**base, "cx": 900.0}))
+    with pytest.raises(ValueError, match="principal point outside the image"):
+        load_observation(DATA / "tshape_small" / "video.mp4", camera=path)
+
+
+@pytest.mark.parametrize("fps", [0.0, -30.0, float("nan")])
+def test_bad_fps(fps):
+    with pytest.raises(ValueError, match="fps must be positive"):
+        load_observation(DATA / "tshape_small" / "video.mp4", fps=fps)
+
+
+def test_folder_needs_fps(tmp_path):
+    cv2.imwrite(str(tmp_path / "0.png"), np.zeros((8, 8), np.uint8))
+    with pytest.raises(ValueError, match="fps must be given"):
+        load_observation(tmp_path)
+
+
+@pytest.mark.parametrize("start, stop, match", [
+    (12, None, "start = 12 is out of range"),
+    (0, 13, "stop = 13 is out of range"),
+    (-1, None, "start must be a non-negative integer"),
+    (5, 5, "stop must be an integer > start"),
+])
+def test_bad_range(start, stop, match):
+    with pytest.raises(ValueError, match=match):
+        load_observation(DATA / "tshape_small" / "video.mp4", start=start, stop=stop)
+
+
+def test_bad_method_and_kind():
+    with pytest.raises(ValueError, match='Invalid method "gmm"'):
+        load_observation(DATA / "tshape_small" / "video.mp4", method="gmm")
+    with pytest.raises(ValueError, match='Invalid kind "film"'):
+        load_observation(DATA / "tshape_small" / "video.mp4", kind="film")
+
+
+def test_frame_flags(tmp_path):
+    masks = np.zeros((14, 40, 70), bool)
+    for t in range(14):
+        masks[t, 10:16, 5 + 3 * t:11 + 3 * t] = True  # a 6x6 square moving right
+    masks[3] = False  # no object
+    masks[6, 0:6] = masks[6, 10:16]  # touches the top border
+    masks[9, 8:22, 30:50] = True  # area jumps
+    masks[12, 30:36, 10:16] = True  # a second component as large as the first
+    for t, mask in enumerate(masks):
+        cv2.imwrite(str(tmp_path / f"{t:02d}.png"), mask.astype(np.uint8) * 255)
+    obs = load_observation(tmp_path, fps=10.0)
+    assert [t for t in range(14) if not obs.used[t]] == [3, 6, 9, 12]
+    assert obs.reasons[3] == "no object" and obs.reasons[6] == "touches the image border"
+    assert obs.reasons[9].startswith("area jumps") and obs.reasons[12] == "several large components"
+    assert np.isnan(obs.boxes[3]).all()
+    np.testing.assert_array_equal(obs.boxes[0], [5, 10, 10, 15])

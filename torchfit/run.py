@@ -1,0 +1,198 @@
+"""The one module (with ``__main__``) that reads Hydra's ``DictConfig``: config in, outputs out.
+
+Every value that enters from the configuration is checked here, with an error that names the
+key, the value and what was expected.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from . import render
+from .camera import Camera
+from .dynamics import RigidBody
+from .render import RenderMesh
+from .report import score_against_truth, summary_text, write_outputs
+from .search import Problem, SearchSettings, fit
+from .shape import PRIMITIVES, Shape, load_shape
+from .video import Observation, SegmentationSettings, load_observation
+
+__all__ = ["run", "build_shape", "build_camera", "build_problem", "resolve_device"]
+
+log = logging.getLogger("torchfit")
+
+_DIMENSIONS = {"tshape": ("crossbar_length", "stem_length", "thickness"), "box": ("extents",),
+               "cylinder": ("radius", "height", "sections"), "sphere": ("radius", "subdivisions")}
+
+
+class ConfigError(ValueError):
+    """A configuration value that cannot be used; the message names the key."""
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` picks CUDA when present, CPU otherwise."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name not in ("cpu", "cuda") and not name.startswith("cuda:"):
+        raise ConfigError(f"device must be auto, cpu or cuda, got {name!r}")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"device={name} but CUDA is not available on this machine")
+    return torch.device(name)
+
+
+def build_shape(obj: DictConfig) -> Shape:
+    """The object from ``object.*``: a mesh file or a primitive, and its density or mass."""
+    mass = obj.get("mass")
+    density = None if mass is not None else obj.get("density")
+    if mass is None and density is None:
+        raise ConfigError("object: set object.density (kg/m^3) or object.mass (kg)")
+    kwargs = {"mass": float(mass)} if mass is not None else {"density": float(density)}
+    if obj.get("mesh"):
+        return load_shape(str(obj.mesh), **kwargs)
+    primitive = obj.get("primitive")
+    if primitive is None:
+        raise ConfigError("object: set object.mesh=<file> or pick a primitive, e.g. object=tshape")
+    if primitive not in PRIMITIVES:
+        raise ConfigError(f'object.primitive "{primitive}" is not one of {sorted(PRIMITIVES)}')
+    dims = {key: (list(obj[key]) if OmegaConf.is_list(obj[key]) else obj[key])
+            for key in _DIMENSIONS[primitive] if obj.get(key) is not None}
+    return load_shape(primitive=primitive, dims=dims, **kwargs)
+
+
+def build_camera(cam: DictConfig, size: tuple[int, int] | None) -> Camera:
+    """Intrinsics from ``camera.file`` or ``camera.fx/fy/cx/cy`` (size from the video)."""
+    if cam.get("file"):
+        camera = Camera.from_file(str(cam.file))
+        overrides = {k: cam[k] for k in ("fx", "fy", "cx", "cy", "width", "height") if cam.get(k) is not None}
+        if overrides:
+            values = {k: getattr(camera, k) for k in ("fx", "fy", "cx", "cy", "width", "height")} | overrides
+            camera = Camera(**values, dist_coeffs=camera.dist_coeffs)
+        return camera
+    missing = [k for k in ("fx", "fy", "cx", "cy") if cam.get(k) is None]
+    if missing:
+        raise ConfigError(f"camera: give camera.file or all of camera.fx/fy/cx/cy (missing {', '.join(missing)})")
+    width = cam.get("width") or (size[1] if size else None)
+    height = cam.get("height") or (size[0] if size else None)
+    if width is None or height is None:
+        raise ConfigError("camera: give camera.width and camera.height")
+    return Camera(float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), int(width), int(height))
+
+
+def _video_size(path: str) -> tuple[int, int] | None:
+    import cv2
+
+    capture = cv2.VideoCapture(path)
+    try:
+        if not capture.isOpened():
+            return None
+        width, height = capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)
+        return (int(height), int(width)) if width and height else None
+    finally:
+        capture.release()
+
+
+def build_problem(observation: Observation, shape: Shape, camera: Camera, *, g: float,
+                  dtype: torch.dtype, device: torch.device, min_frames: int = 6) -> tuple[Problem, np.ndarray]:
+    """Tensors for the fit from the used span of an observation.
+
+    Returns:
+        The :class:`Problem` (time 0 at the first used frame) and the indices (into the
+        observation's frames) of the frames it covers.
+
+    Raises:
+        ValueError: fewer used frames than the unknowns allow, or a mesh whose size cannot
+            match the silhouettes (wrong units).
+    """
+    used = np.asarray(observation.used, bool)
+    n_used = int(used.sum())
+    if n_used < min_frames:
+        raise ConfigError(
+            f"recording too short to fit: {n_used} usable frames, need at least {min_frames} "
+            "(14 unknowns, and each frame's silhouette gives a few constraints)")
+    idx = np.flatnonzero(used)
+    span = np.arange(idx[0], idx[-1] + 1)
+    masks = torch.as_tensor(observation.masks[span], dtype=dtype, device=device)
+    boxes = torch.as_tensor(np.nan_to_num(observation.boxes[span]), dtype=dtype, device=device)
+    times = torch.as_tensor((span - span[0]) / observation.fps, dtype=dtype, device=device)
+    _check_scale(observation, shape, camera)
+    problem = Problem(shape, camera, RenderMesh.from_shape(shape, dtype, device),
+                      RigidBody.from_shape(shape, dtype, device), times, masks, boxes,
+                      torch.as_tensor(used[span], device=device), g=g)
+    return problem, span
+
+
+def _check_scale(observation: Observation, shape: Shape, camera: Camera) -> None:
+    """Reject a mesh whose size puts the object at an impossible depth (units mistaken)."""
+    areas = observation.masks[observation.used].reshape(int(observation.used.sum()), -1).sum(-1)
+    depth = math.sqrt(camera.fx * camera.fy * shape.reference_area / max(float(np.median(areas)), 1.0))
+    if not 0.05 <= depth <= 200.0:
+        hint = " (a mesh in millimetres given as metres?)" if depth > 200 else " (a mesh in metres given as millimetres?)"
+        raise ConfigError(
+            f"the mesh ({2 * shape.radius:.4g} m across) would have to be {depth:.3g} m from the camera "
+            f"to match silhouettes of {float(np.median(areas)):.0f} pixels{hint}; expected 0.05-200 m")
+
+
+def _search_settings(cfg: DictConfig) -> SearchSettings:
+    values = OmegaConf.to_container(cfg, resolve=True)
+    try:
+        return SearchSettings(**values)
+    except TypeError as err:
+        raise ConfigError(f"search: {err}") from None
+
+
+def run(cfg: DictConfig, out_dir: str | Path) -> dict:
+    """Fit the configured recording and write the outputs into ``out_dir``.
+
+    Returns:
+        The ``result.json`` content.
+    """
+    started = time.perf_counter()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    say = (lambda message: None) if cfg.quiet else (lambda message: log.info(message))
+    if cfg.task not in ("fit",):
+        raise ConfigError(f'task "{cfg.task}" is not available; must be one of ["fit"]')
+    device = resolve_device(str(cfg.device))
+    if cfg.dtype not in ("float32", "float64"):
+        raise ConfigError(f"dtype must be float32 or float64, got {cfg.dtype!r}")
+    dtype = getattr(torch, cfg.dtype)
+    data = cfg.data
+    if not data.video:
+        raise ConfigError("data.video: give the recording (a video file, image folder or masks folder)")
+    if data.fps is not None and not float(data.fps) > 0:
+        raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
+    if float(cfg.dynamics.g) <= 0:
+        raise ConfigError(f"dynamics.g must be positive m/s^2, got {cfg.dynamics.g}")
+    compile_flag = cfg.render.compile
+    render.set_compile(device.type == "cuda" if compile_flag == "auto" else bool(compile_flag))
+    torch.manual_seed(int(cfg.seed))
+
+    shape = build_shape(cfg.object)
+    camera = build_camera(cfg.camera, _video_size(str(data.video)))
+    timing = {}
+    clock = time.perf_counter()
+    observation = load_observation(
+        str(data.video), kind=str(data.kind), camera=camera, fps=data.fps, start=int(data.start),
+        stop=data.stop, cache_dir=(out_dir / "cache") if data.cache else None,
+        settings=SegmentationSettings(method=str(data.segmentation.method)))
+    timing["segmentation_s"] = time.perf_counter() - clock
+    say(f"recording: {len(observation.masks)} frames at {observation.fps:g} fps, "
+        f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
+    problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=dtype, device=device)
+
+    clock = time.perf_counter()
+    result = fit(problem, _search_settings(cfg.search), progress=say)
+    timing["fit_s"] = time.perf_counter() - clock
+    truth = score_against_truth(str(data.truth), result, problem, shape, span) if data.truth else None
+    timing["total_s"] = time.perf_counter() - started
+    content = write_outputs(out_dir, result, problem, observation, shape, camera, span, timing, truth,
+                            overlay=bool(cfg.outputs.overlay_video), plots=bool(cfg.outputs.plots))
+    print(summary_text(content, out_dir))
+    return content

@@ -1,0 +1,559 @@
+"""The multi-start search: from silhouettes alone to the initial state, with no guess.
+
+Plan (each stage measured on the MuJoCo recordings; see experiments/fit/README.md):
+
+1. *Track*: a parabola with |g| known fitted to the silhouettes' centroids and areas gives the
+   centre of mass's position and velocity at t = 0 and the gravity direction.
+2. *Anchor frames*: two frames a short time apart. In each, every orientation of a uniform
+   (super-Fibonacci) grid over SO(3) is rendered at its tracked position and scored; the best
+   are refined one frame at a time with Adam (orientation and position).
+3. *Seeds*: each pair of refined orientations (one per anchor frame, times each rotational
+   symmetry of the shape) implies an angular velocity ``log(R1 R0ᵀ) / Δt``; the pairs are
+   simulated over the first frames and scored, and the best survive.
+4. *Refine*: Adam on all survivors as one batch — the whole state and the gravity angles —
+   with a time curriculum (first frames first), coarse-to-fine crops and edge widths, and
+   successive halving of the candidates.
+5. *Report*: the distinct minima (modulo the shape's symmetry) with their losses, best first.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
+from .dynamics import RigidBody, integrate
+from .losses import mask_moments, sample_targets, silhouette_loss
+from .render import RenderMesh, crop_windows, render_silhouettes
+from .rotation import axis_angle_to_quat, matrix_to_quat, quat_multiply, quat_to_matrix, rotation_angle
+from .shape import Shape
+
+__all__ = ["SearchSettings", "Problem", "Candidates", "FitResult", "fit", "so3_grid", "estimate_track"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """Knobs of the search; the defaults are the measured ones.
+
+    Attributes:
+        orientations: size of the SO(3) grid scored in each anchor frame.
+        anchor_gap: seconds between the two anchor frames.
+        keep_per_anchor: refined orientations kept per anchor frame.
+        anchor_steps: Adam steps of the per-frame refinement.
+        seed_frames: frames the seeds are scored on.
+        survivors: seeds that enter the joint refinement.
+        stages: (frames fraction, crop pixels, sigma in crop pixels, Adam steps, keep fraction)
+            of the joint refinement, in order.
+        max_spin: seeds spinning faster are dropped, rad/s.
+        polish_iterations, polish_crop, polish_sigma: the closing L-BFGS on all frames.
+        final: candidates polished and reported at most.
+        lr_scale: multiplies every learning rate.
+        seed: random seed (the grid is deterministic; used for tie-breaking noise).
+    """
+
+    orientations: int = 3000
+    anchor_gap: float = 0.06
+    keep_per_anchor: int = 24
+    anchor_steps: int = 40
+    seed_frames: int = 10
+    survivors: int = 48
+    stages: tuple = ((0.35, 32, 1.5, 40, 0.5), (0.7, 32, 1.0, 40, 0.5), (1.0, 48, 0.7, 40, 0.5),
+                     (1.0, 64, 0.5, 30, 1.0))
+    max_spin: float = 40.0
+    final: int = 6
+    polish_iterations: int = 40
+    polish_crop: int = 64
+    polish_sigma: float = 0.5
+    lr_scale: float = 1.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("orientations", "keep_per_anchor", "seed_frames", "survivors", "final"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"search.{name} must be a positive count, got {getattr(self, name)}")
+        if not self.anchor_gap > 0:
+            raise ValueError(f"search.anchor_gap must be positive seconds, got {self.anchor_gap}")
+        if not self.max_spin > 0:
+            raise ValueError(f"search.max_spin must be positive rad/s, got {self.max_spin}")
+
+
+@dataclass
+class Problem:
+    """Everything the losses need, as tensors on one device.
+
+    Attributes:
+        shape, camera: the object and the intrinsics.
+        mesh: render representation; body: mass properties.
+        times: (T,) seconds of the fitted frames, 0 at the first used frame.
+        masks: (T, H, W) observed masks as floats.
+        boxes: (T, 4) observed boxes ``(u0, v0, u1, v1)``.
+        used: (T,) bool, frames that count in the loss.
+        g: gravitational acceleration, m/s².
+        step_size: largest RK4 step, seconds (1/120 s keeps rotation errors under 0.1° up
+            to 20 rad/s).
+    """
+
+    shape: Shape
+    camera: Camera
+    mesh: RenderMesh
+    body: RigidBody
+    times: Tensor
+    masks: Tensor
+    boxes: Tensor
+    used: Tensor
+    g: float = 9.81
+    step_size: float = 1.0 / 120
+    _targets: dict = field(default_factory=dict, repr=False)
+
+    def windows(self, crop: int) -> Tensor:
+        """(T, 3) crop windows around the observed boxes."""
+        return crop_windows(self.boxes, (crop, crop), margin=0.3)
+
+    def targets(self, crop: int) -> Tensor:
+        """(T, crop, crop) observed coverage in each frame's window (cached)."""
+        if crop not in self._targets:
+            self._targets[crop] = sample_targets(self.masks, self.windows(crop), (crop, crop))
+        return self._targets[crop]
+
+
+@dataclass
+class Candidates:
+    """A batch of candidate solutions in the optimiser's parameters.
+
+    The orientation at t = 0 is ``exp(delta) base`` (``base`` fixed, ``delta`` optimised);
+    positions and velocities are the centre of mass's, world frame.
+
+    Attributes:
+        base: (B, 4) quaternions.
+        delta: (B, 3) rotation vectors, radians.
+        com: (B, 3) metres.
+        com_velocity: (B, 3) m/s.
+        omega: (B, 3) rad/s, world frame.
+        gravity_angles: (B, 2) tilt and roll, radians.
+    """
+
+    base: Tensor
+    delta: Tensor
+    com: Tensor
+    com_velocity: Tensor
+    omega: Tensor
+    gravity_angles: Tensor
+
+    def quat(self) -> Tensor:
+        """(B, 4) orientation at t = 0."""
+        return quat_multiply(axis_angle_to_quat(self.delta), self.base)
+
+    def state(self, body: RigidBody) -> Tensor:
+        """(B, 13) user-convention state (mesh origin) at t = 0."""
+        quat = self.quat()
+        lever = (quat_to_matrix(quat) @ body.com.unsqueeze(-1)).squeeze(-1)
+        return torch.cat((self.com - lever, quat, self.com_velocity - torch.cross(self.omega, lever, dim=-1),
+                          self.omega), -1)
+
+    def gravity(self, g: float) -> Tensor:
+        """(B, 3) gravitational acceleration."""
+        return g * gravity_direction(self.gravity_angles[:, 0], self.gravity_angles[:, 1])
+
+    def select(self, index: Tensor) -> "Candidates":
+        return Candidates(*(getattr(self, f)[index].detach().clone() for f in self.fields()))
+
+    def fields(self) -> tuple[str, ...]:
+        return ("base", "delta", "com", "com_velocity", "omega", "gravity_angles")
+
+    def __len__(self) -> int:
+        return self.base.shape[0]
+
+    def rebase(self) -> "Candidates":
+        """Fold ``delta`` into ``base`` (keeps the rotation-vector parameter small)."""
+        return Candidates(self.quat().detach(), torch.zeros_like(self.delta), *(
+            getattr(self, f).detach().clone() for f in self.fields()[2:]))
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit` found.
+
+    Attributes:
+        candidates: the distinct solutions, best first.
+        losses: (K,) their losses.
+        state: (K, 13) user-convention initial states.
+        history: per stage, (name, seconds, best loss, candidates).
+        loss_curve: best loss after every optimiser step.
+        track: the parabola fit of stage 1.
+    """
+
+    candidates: Candidates
+    losses: Tensor
+    state: Tensor
+    history: list
+    loss_curve: list
+    track: dict
+
+
+# ---------------------------------------------------------------------------------------------
+# stage 1: the track
+
+
+def estimate_track(problem: Problem) -> dict:
+    """Parabola with |g| known through the silhouette centroids and areas.
+
+    The centroid is taken as the projection of the centre of mass and the area as
+    ``fx fy A / z²`` with ``A`` the shape's mean projected area; both are approximate (the
+    orientation changes them), which the later stages correct.
+
+    Returns:
+        dict with ``com`` (3,), ``velocity`` (3,), ``tilt``, ``roll`` (radians) and the rms
+        centroid residual in pixels.
+    """
+    cam = problem.camera
+    used = problem.used
+    masks = problem.masks[used].double()
+    times = problem.times[used].double()
+    area, centroid, _ = mask_moments(masks)
+    ref_area = problem.shape.reference_area
+    depth = math.sqrt(cam.fx * cam.fy * ref_area) / area.clamp(min=1.0).sqrt()  # (T,)
+    xs = (centroid[:, 0] - cam.cx) / cam.fx * depth
+    ys = (centroid[:, 1] - cam.cy) / cam.fy * depth
+    points = torch.stack((xs, ys, depth), -1)
+    # linear least squares for a start: points ≈ p + v t + ½ a t² with a free, then |a| = g
+    design = torch.stack((torch.ones_like(times), times, 0.5 * times**2), -1)
+    coef = torch.linalg.lstsq(design, points).solution  # (3, 3)
+    accel = coef[2]
+    direction = accel / accel.norm().clamp(min=1e-9)
+    if accel.norm() < 1e-6 or len(times) < 3:
+        direction = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    tilt0, roll0 = tilt_roll_from_direction(direction)
+    # then the reprojection fit: centroids in pixels, log-areas, with the magnitude g fixed
+    best = None
+    for roll_start in (float(roll0), 0.0):
+        params = torch.cat((coef[0], coef[1], torch.stack((tilt0.clamp(-1.2, 1.2), torch.tensor(roll_start,
+                           dtype=torch.float64))))).clone().requires_grad_()
+        opt = torch.optim.LBFGS([params], max_iter=200, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            loss = _track_loss(params, times, centroid, area, cam, ref_area, problem.g)
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        with torch.no_grad():
+            loss = float(_track_loss(params, times, centroid, area, cam, ref_area, problem.g))
+        if best is None or loss < best[0]:
+            best = (loss, params.detach().clone())
+    params = best[1]
+    com, velocity = params[0:3], params[3:6]
+    pred = _track_points(params, times, problem.g)
+    pixels, _ = project(cam, pred)
+    rms = float((pixels - centroid).norm(dim=-1).square().mean().sqrt())
+    return {"com": com.float(), "velocity": velocity.float(), "tilt": float(params[6]),
+            "roll": float(params[7]), "centroid_rms_px": rms}
+
+
+def _track_points(params: Tensor, times: Tensor, g: float) -> Tensor:
+    accel = g * gravity_direction(params[6], params[7])
+    return params[0:3] + params[3:6] * times[:, None] + 0.5 * accel * times[:, None] ** 2
+
+
+def _track_loss(params, times, centroid, area, cam, ref_area, g) -> Tensor:
+    points = _track_points(params, times, g)
+    depth = points[:, 2].clamp(min=1e-3)
+    pixels, _ = project(cam, points)
+    pred_area = cam.fx * cam.fy * ref_area / depth**2
+    return ((pixels - centroid).square().sum(-1) / 4.0).mean() + \
+        ((pred_area.log() - area.clamp(min=1.0).log()).square() / 0.3**2).mean()
+
+
+# ---------------------------------------------------------------------------------------------
+# stage 2: anchor frames
+
+
+def so3_grid(n: int, dtype=torch.float32) -> Tensor:
+    """Super-Fibonacci spiral: ``n`` nearly uniform unit quaternions (Alexa, CVPR 2022).
+
+    Returns:
+        (n, 4) quaternions (w, x, y, z).
+    """
+    phi, psi = math.sqrt(2.0), 1.533751168755204288118041
+    s = torch.arange(n, dtype=torch.float64) + 0.5
+    r = torch.sqrt(s / n)
+    big_r = torch.sqrt(1.0 - s / n)
+    alpha = 2 * math.pi * s / phi
+    beta = 2 * math.pi * s / psi
+    quat = torch.stack((r * torch.sin(alpha), r * torch.cos(alpha), big_r * torch.sin(beta),
+                        big_r * torch.cos(beta)), -1)
+    return quat.to(dtype)
+
+
+def _render_frame(problem: Problem, frame: int, quat: Tensor, com: Tensor, crop: int, sigma: float) -> Tensor:
+    """(N, crop, crop) coverage of N poses (orientation, centre of mass) in one frame's window."""
+    rot = quat_to_matrix(quat)
+    trans = com - (rot @ problem.body.com.unsqueeze(-1)).squeeze(-1)
+    window = problem.windows(crop)[frame].expand(len(quat), 1, 3)
+    return render_silhouettes(problem.mesh, problem.camera, rot[:, None], trans[:, None], window,
+                              size=(crop, crop), sigma=sigma)[:, 0]
+
+
+def _frame_loss(problem, frame, quat, com, crop, sigma) -> Tensor:
+    cover = _render_frame(problem, frame, quat, com, crop, sigma)
+    return (cover - problem.targets(crop)[frame]).square().mean(dim=(-2, -1))
+
+
+def _symmetry_distance(quat_a: Tensor, quat_b: Tensor, symmetries: Tensor) -> Tensor:
+    """(Na, Nb) rotation distance modulo the shape's symmetry group (K, 3, 3), radians."""
+    rot_a = quat_to_matrix(quat_a)[:, None, None]  # (Na, 1, 1, 3, 3)
+    rot_b = (quat_to_matrix(quat_b)[:, None] @ symmetries)[None]  # (1, Nb, K, 3, 3)
+    return rotation_angle(rot_a, rot_b).amin(-1)
+
+
+def _anchor_orientations(problem: Problem, frame: int, com: Tensor, settings: SearchSettings,
+                         grid: Tensor, symmetries: Tensor) -> Tensor:
+    """Refined orientations that explain one frame's silhouette, best first: (M, 4)."""
+    with torch.no_grad():
+        scores = torch.cat([_frame_loss(problem, frame, chunk, com.expand(len(chunk), 3), 24, 1.5)
+                            for chunk in grid.split(1024)])
+    order = torch.argsort(scores)
+    # keep the best, skipping near-duplicates modulo symmetry
+    chosen: list[int] = []
+    pool = grid[order[: settings.keep_per_anchor * 8]]
+    for i in range(len(pool)):
+        if chosen and _symmetry_distance(pool[i:i + 1], pool[chosen], symmetries).min() < 0.25:
+            continue
+        chosen.append(i)
+        if len(chosen) == settings.keep_per_anchor * 2:
+            break
+    base = pool[chosen]
+    delta = torch.zeros(len(base), 3, dtype=base.dtype, requires_grad=True)
+    shift = torch.zeros(len(base), 3, dtype=base.dtype, requires_grad=True)
+    opt = torch.optim.Adam([{"params": [delta], "lr": 0.05}, {"params": [shift], "lr": 0.004}])
+    for step in range(settings.anchor_steps):
+        crop, sigma = (32, 1.5) if step < settings.anchor_steps // 2 else (48, 0.8)
+        quat = quat_multiply(axis_angle_to_quat(delta), base)
+        loss = _frame_loss(problem, frame, quat, com + shift, crop, sigma)
+        opt.zero_grad()
+        loss.sum().backward()
+        opt.step()
+    with torch.no_grad():
+        quat = quat_multiply(axis_angle_to_quat(delta), base)
+        loss = _frame_loss(problem, frame, quat, com + shift, 48, 0.8)
+    order = torch.argsort(loss)
+    quat = quat[order]
+    chosen = []
+    for i in range(len(quat)):
+        if chosen and _symmetry_distance(quat[i:i + 1], quat[chosen], symmetries).min() < 0.1:
+            continue
+        chosen.append(i)
+        if len(chosen) == settings.keep_per_anchor:
+            break
+    return quat[chosen].detach()
+
+
+def _log_rotation(rot: Tensor) -> Tensor:
+    """(N, 3) rotation vectors of (N, 3, 3) rotations."""
+    quat = matrix_to_quat(rot)
+    vec = quat[:, 1:]
+    sin_half = vec.norm(dim=-1, keepdim=True)
+    angle = 2 * torch.atan2(sin_half, quat[:, :1])
+    return vec * torch.where(sin_half > 1e-9, angle / sin_half.clamp(min=1e-12), torch.full_like(angle, 2.0))
+
+
+# ---------------------------------------------------------------------------------------------
+# stages 3-5
+
+
+def _candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float) -> Tensor:
+    """(B,) silhouette loss of the candidates over the first ``frames`` frames."""
+    times = problem.times[:frames]
+    traj = integrate(cands.state(problem.body), times, problem.body, cands.gravity(problem.g),
+                     step_size=problem.step_size)
+    windows = problem.windows(crop)[:frames].expand(len(cands), frames, 3)
+    cover = render_silhouettes(problem.mesh, problem.camera, traj.rot, traj.position, windows,
+                               size=(crop, crop), sigma=sigma)
+    loss = silhouette_loss(cover, problem.targets(crop)[:frames], problem.used[:frames].to(cover.dtype))
+    return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, float("inf")))
+
+
+def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float, steps: int,
+          lr_scale: float, curve: list, progress: Callable[[str], None] | None, label: str) -> Tensor:
+    params = {name: getattr(cands, name).detach().clone().requires_grad_() for name in cands.fields()[1:]}
+    for name, tensor in params.items():
+        setattr(cands, name, tensor)
+    rates = {"delta": 0.03, "com": 0.004, "com_velocity": 0.02, "omega": 0.3, "gravity_angles": 0.01}
+    opt = torch.optim.Adam([{"params": [params[n]], "lr": rates[n] * lr_scale} for n in rates])
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1), eta_min=0.0)
+    loss = None
+    for step in range(steps):
+        loss = _candidate_losses(problem, cands, frames, crop, sigma)
+        finite = torch.isfinite(loss)
+        opt.zero_grad()
+        loss[finite].sum().backward()
+        for tensor in params.values():
+            if tensor.grad is not None:
+                torch.nan_to_num_(tensor.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        opt.step()
+        sched.step()
+        curve.append(float(loss.min()))
+        if progress and (step % 20 == 0 or step == steps - 1):
+            progress(f"{label}: step {step + 1}/{steps}, {len(cands)} candidates, best loss {float(loss.min()):.5f}")
+    with torch.no_grad():
+        return _candidate_losses(problem, cands, frames, crop, sigma)
+
+
+_SCALES = {"delta": 0.05, "com": 0.01, "com_velocity": 0.05, "omega": 0.5, "gravity_angles": 0.02}
+
+
+def _polish(problem: Problem, cands: Candidates, crop: int, sigma: float, iterations: int,
+            curve: list) -> Tensor:
+    """L-BFGS on all frames from the Adam result: near the optimum the loss is smooth and a
+    quasi-Newton step converges in tens of iterations where Adam needs hundreds. Parameters
+    are scaled to comparable units; the candidates' losses are independent, so their sum is
+    minimised jointly."""
+    frames = len(problem.times)
+    start = {name: getattr(cands, name).detach().clone() for name in _SCALES}
+    unit = torch.zeros(len(cands), sum(getattr(cands, n).shape[1] for n in _SCALES),
+                       dtype=cands.com.dtype, device=cands.com.device, requires_grad=True)
+    sizes = [getattr(cands, n).shape[1] for n in _SCALES]
+
+    def assign(vector: Tensor) -> None:
+        for (name, scale), part in zip(_SCALES.items(), vector.split(sizes, dim=1)):
+            setattr(cands, name, start[name] + scale * part)
+
+    opt = torch.optim.LBFGS([unit], lr=1.0, max_iter=iterations, history_size=20,
+                            line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        assign(unit)
+        loss = _candidate_losses(problem, cands, frames, crop, sigma)
+        total = torch.where(torch.isfinite(loss), loss, torch.zeros_like(loss)).sum()
+        total.backward()
+        curve.append(float(loss.min()))
+        return total
+
+    opt.step(closure)
+    with torch.no_grad():
+        assign(unit.detach())
+        return _candidate_losses(problem, cands, frames, crop, sigma)
+
+
+def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
+        progress: Callable[[str], None] | None = None) -> FitResult:
+    """Find the initial state and gravity that best explain the silhouettes, with no guess.
+
+    Args:
+        problem: the observation as tensors (see :class:`Problem`).
+        settings: search knobs.
+        progress: called with one-line status messages.
+
+    Returns:
+        A :class:`FitResult` with the distinct minima, best first.
+    """
+    torch.manual_seed(settings.seed)
+    say = progress or (lambda message: None)
+    history: list = []
+    curve: list = []
+    dtype = problem.masks.dtype
+    symmetries = torch.as_tensor(problem.shape.symmetries, dtype=dtype)
+    used_idx = torch.nonzero(problem.used).flatten()
+    n_frames = len(problem.times)
+
+    clock = time.perf_counter()
+    track = estimate_track(problem)
+    history.append(("track", time.perf_counter() - clock, track["centroid_rms_px"], 1))
+    say(f"track: centroid rms {track['centroid_rms_px']:.2f} px, tilt {math.degrees(track['tilt']):.1f}°, "
+        f"roll {math.degrees(track['roll']):.1f}°")
+
+    def com_at(t: float) -> Tensor:
+        accel = problem.g * gravity_direction(torch.tensor(track["tilt"]), torch.tensor(track["roll"]))
+        return (track["com"] + track["velocity"] * t + 0.5 * accel.to(dtype) * t * t).to(dtype)
+
+    # stage 2: anchor frames
+    clock = time.perf_counter()
+    first = int(used_idx[0])
+    gaps = (problem.times[used_idx] - problem.times[first] - settings.anchor_gap).abs()
+    second = int(used_idx[torch.argmin(gaps)])
+    if second == first:
+        second = int(used_idx[min(1, len(used_idx) - 1)])
+    grid = so3_grid(settings.orientations, dtype)
+    anchors = []
+    for frame in (first, second):
+        anchors.append(_anchor_orientations(problem, frame, com_at(float(problem.times[frame])), settings,
+                                            grid, symmetries))
+    history.append(("anchors", time.perf_counter() - clock, float("nan"), sum(len(a) for a in anchors)))
+    say(f"anchors: frames {first} and {second}, {len(anchors[0])} + {len(anchors[1])} orientations")
+
+    # stage 3: seeds from pairs
+    clock = time.perf_counter()
+    dt = float(problem.times[second] - problem.times[first])
+    rot0 = quat_to_matrix(anchors[0])  # (M0, 3, 3)
+    rot1 = (quat_to_matrix(anchors[1])[:, None] @ symmetries).reshape(-1, 3, 3)  # (M1*K, 3, 3)
+    rel = rot1[None] @ rot0[:, None].transpose(-1, -2)  # (M0, M1*K, 3, 3)
+    omega = _log_rotation(rel.reshape(-1, 3, 3)) / max(dt, 1e-6)  # (M0*M1*K, 3)
+    base = anchors[0].repeat_interleave(rot1.shape[0], 0)
+    keep = omega.norm(dim=-1) <= settings.max_spin
+    base, omega = base[keep], omega[keep]
+    if first != 0:  # rotate back to t = 0 at constant spin
+        t_first = float(problem.times[first])
+        base = quat_multiply(axis_angle_to_quat(-omega * t_first), base)
+    accel = problem.g * gravity_direction(torch.tensor(track["tilt"]), torch.tensor(track["roll"])).to(dtype)
+    count = len(base)
+    seeds = Candidates(base, torch.zeros(count, 3, dtype=dtype), track["com"].to(dtype).expand(count, 3).clone(),
+                       track["velocity"].to(dtype).expand(count, 3).clone(), omega,
+                       torch.tensor([track["tilt"], track["roll"]], dtype=dtype).expand(count, 2).clone())
+    del accel
+    seed_frames = min(n_frames, max(settings.seed_frames, second + 3))
+    with torch.no_grad():
+        scores = torch.cat([_candidate_losses(problem, seeds.select(idx), seed_frames, 24, 1.5)
+                            for idx in torch.arange(count).split(512)])
+    order = torch.argsort(scores)[: settings.survivors]
+    cands = seeds.select(order)
+    history.append(("seeds", time.perf_counter() - clock, float(scores[order[0]]), count))
+    say(f"seeds: {count} pairs scored on {seed_frames} frames, {len(cands)} survive, best {float(scores[order[0]]):.5f}")
+
+    # stage 4: joint refinement with curriculum and successive halving
+    losses = scores[order]
+    for index, (fraction, crop, sigma, steps, keep_fraction) in enumerate(settings.stages):
+        clock = time.perf_counter()
+        frames = max(seed_frames, int(math.ceil(fraction * n_frames)))
+        frames = min(frames, n_frames)
+        losses = _adam(problem, cands, frames, crop, sigma, steps, settings.lr_scale, curve, progress,
+                       f"refine {index + 1}/{len(settings.stages)}")
+        cands = cands.rebase()
+        n_keep = max(settings.final, int(math.ceil(len(cands) * keep_fraction)))
+        order = torch.argsort(losses)[:n_keep]
+        cands, losses = cands.select(order), losses[order]
+        history.append((f"refine {index + 1}", time.perf_counter() - clock, float(losses[0]), len(cands)))
+
+    clock = time.perf_counter()
+    losses = _polish(problem, cands, settings.polish_crop, settings.polish_sigma, settings.polish_iterations, curve)
+    cands = cands.rebase()
+    order = torch.argsort(losses)
+    cands, losses = cands.select(order), losses[order]
+    history.append(("polish", time.perf_counter() - clock, float(losses[0]), len(cands)))
+    say(f"polish: best loss {float(losses[0]):.5f}")
+
+    # stage 5: distinct minima, best first
+    quat = cands.quat().detach()
+    distinct: list[int] = []
+    for i in range(len(cands)):
+        if not torch.isfinite(losses[i]):
+            continue
+        if distinct and _symmetry_distance(quat[i:i + 1], quat[distinct], symmetries).min() < math.radians(5):
+            continue
+        distinct.append(i)
+        if len(distinct) == settings.final:
+            break
+    index = torch.tensor(distinct, dtype=torch.long)
+    cands, losses = cands.select(index), losses[index]
+    with torch.no_grad():
+        state = cands.state(problem.body)
+    return FitResult(cands, losses.detach(), state.detach(), history, curve, track)

@@ -1,0 +1,660 @@
+"""Video front end: a recording in, per-frame object masks, boxes and frame flags out.
+
+Inputs are a video file (anything OpenCV reads), a folder of images (sorted by name) or a
+folder of masks (PNG, object = non-zero). Video and images are segmented against a model of
+the static scene:
+
+1. background ``B``: the temporal median of the frames (default; the object moves, so the
+   median sees the scene) or the background image of OpenCV's MOG2 model;
+2. detection: colour difference ``|I - B|`` above ``noise_sigmas`` robust standard deviations
+   of the difference image (MAD based), opened with a small structuring element; the object
+   seed is the largest connected component;
+3. boundary: motion blur and partial pixel coverage make the object's edge a mixture
+   ``I = a F + (1 - a) B``. With the object's colour ``F = s A`` (albedo direction ``A``,
+   estimated from confident object pixels, times an unknown shading ``s`` per pixel) each
+   pixel's coverage ``a`` is a 2-unknown least-squares fit, independent of shading. The mask
+   is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half covered
+   exactly at its position at that time. Closed, largest component, holes filled.
+
+Frames that should not be fitted keep their place in every per-frame array and are flagged
+``used=False`` with a reason. Segmentation results are cached in ``cache_dir``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from scipy import ndimage
+
+from torchfit.camera import Camera
+
+__all__ = [
+    "Observation",
+    "SegmentationSettings",
+    "load_observation",
+    "read_frames",
+    "contact_sheet",
+    "BACKGROUND_METHODS",
+]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+KINDS = ("auto", "video", "images", "masks")
+BACKGROUND_METHODS = ("median", "mog2")
+_CACHE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SegmentationSettings:
+    """Settings of the segmentation (all part of the cache key).
+
+    Attributes:
+        method: background model, one of ``BACKGROUND_METHODS``.
+        noise_sigmas: detection threshold in robust standard deviations of ``|I - B|``.
+        alpha_threshold: coverage at which a pixel counts as object (0.5: the edge position
+            at the frame time for a centred exposure).
+        alpha_smoothing: Gaussian sigma (pixels) applied to the coverage before thresholding.
+        morph_radius: radius (pixels) of the square opening / closing elements.
+        min_area: smallest object area in pixels; smaller components are noise.
+        second_component_frac: a frame whose second largest detection component is at least
+            this fraction of the largest is flagged ``several large components``.
+        area_jump: a frame whose area differs by more than this factor from the median area
+            of its clean neighbours (three each side) is flagged.
+        max_background_frames: frames (evenly spaced) that feed the background model.
+    """
+
+    method: str = "median"
+    noise_sigmas: float = 6.0
+    alpha_threshold: float = 0.5
+    alpha_smoothing: float = 0.7
+    morph_radius: int = 1
+    min_area: int = 6
+    second_component_frac: float = 0.5
+    area_jump: float = 2.0
+    max_background_frames: int = 60
+
+    def __post_init__(self) -> None:
+        if self.method not in BACKGROUND_METHODS:
+            raise ValueError(
+                f'Invalid method "{self.method}". Must be one of {", ".join(BACKGROUND_METHODS)}'
+            )
+        for name in ("noise_sigmas", "alpha_smoothing"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
+        if not 0.0 < self.alpha_threshold < 1.0:
+            raise ValueError(f"alpha_threshold must be in (0, 1), got {self.alpha_threshold!r}")
+        if self.area_jump <= 1.0:
+            raise ValueError(f"area_jump must be > 1, got {self.area_jump!r}")
+        if self.min_area < 1 or self.morph_radius < 0 or self.max_background_frames < 1:
+            raise ValueError(
+                "min_area and max_background_frames must be >= 1 and morph_radius >= 0, got "
+                f"{self.min_area!r}, {self.max_background_frames!r}, {self.morph_radius!r}"
+            )
+
+
+@dataclass
+class Observation:
+    """What the fit consumes from one recording.
+
+    Attributes:
+        masks: (T, H, W) bool object masks (undistorted when the camera has distortion).
+        boxes: (T, 4) float ``(x0, y0, x1, y1)``, pixel-centre coordinates, inclusive
+            (``x1`` is the last column index); NaN where a frame has no object.
+        used: (T,) bool, False for frames to leave out of the fit.
+        reasons: T strings, ``""`` for used frames, else why the frame is left out.
+        fps: frames per second.
+        frame_indices: (T,) int64 index of each frame in the source.
+        camera: intrinsics, if given.
+        source: the input path.
+        kind: ``"video"``, ``"images"`` or ``"masks"``.
+        from_cache: True when the masks were loaded from the cache, not segmented.
+        background: (H, W, 3) uint8 RGB background model (distorted, as recorded), or None
+            for mask input.
+        areas: (T,) int64 mask areas, pixels.
+    """
+
+    masks: np.ndarray
+    boxes: np.ndarray
+    used: np.ndarray
+    reasons: list[str]
+    fps: float
+    frame_indices: np.ndarray
+    camera: Camera | None
+    source: str
+    kind: str
+    from_cache: bool = False
+    background: np.ndarray | None = None
+    areas: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def times(self) -> np.ndarray:
+        """(T,) seconds, 0 at the first frame (``t = i / fps``)."""
+        return np.arange(len(self.frame_indices)) / self.fps
+
+
+# --------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def _check_range(start: int, stop: int | None, count: int, source: str) -> int:
+    if count == 0:
+        raise ValueError(f"{source!r} has no frames")
+    stop = count if stop is None else stop
+    if not (0 <= start < count):
+        raise ValueError(f"start = {start} is out of range for {source!r} with {count} frames")
+    if not (start < stop <= count):
+        raise ValueError(
+            f"stop = {stop} is out of range for {source!r} with {count} frames "
+            f"(expected {start} < stop <= {count})"
+        )
+    return stop
+
+
+def _read_video(path: Path, start: int, stop: int | None) -> tuple[np.ndarray, float]:
+    """(T, H, W, 3) uint8 BGR frames ``start:stop`` and the file's fps (0 if unknown)."""
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise ValueError(
+            f"could not read video {str(path)!r}: OpenCV cannot open it (not a video it "
+            "decodes, or a video with no frames)"
+        )
+    try:
+        fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+        frames = []
+        index = 0
+        while stop is None or index < stop:
+            ok, frame = capture.read()
+            if not ok:
+                break
+            if index >= start:
+                frames.append(frame)
+            index += 1
+    finally:
+        capture.release()
+    _check_range(start, stop, index, str(path))
+    return np.stack(frames), fps
+
+
+def _read_image(path: Path, flags: int) -> np.ndarray:
+    image = cv2.imread(str(path), flags)
+    if image is None:
+        raise ValueError(f"could not read image {str(path)!r}")
+    return image
+
+
+def _read_image_folder(paths: list[Path], start: int, stop: int | None) -> np.ndarray:
+    stop = _check_range(start, stop, len(paths), str(paths[0].parent) if paths else "")
+    frames = []
+    for path in paths[start:stop]:
+        image = _read_image(path, cv2.IMREAD_COLOR)
+        if frames and image.shape != frames[0].shape:
+            raise ValueError(
+                f"image {str(path)!r} has size {image.shape[1]}x{image.shape[0]}, "
+                f"expected {frames[0].shape[1]}x{frames[0].shape[0]} like the first"
+            )
+        frames.append(image)
+    return np.stack(frames)
+
+
+def _read_mask_folder(paths: list[Path], start: int, stop: int | None) -> np.ndarray:
+    stop = _check_range(start, stop, len(paths), str(paths[0].parent) if paths else "")
+    masks = []
+    for path in paths[start:stop]:
+        image = _read_image(path, cv2.IMREAD_UNCHANGED)
+        mask = image != 0 if image.ndim == 2 else (image != 0).any(axis=-1)
+        if masks and mask.shape != masks[0].shape:
+            raise ValueError(
+                f"mask {str(path)!r} has size {mask.shape[1]}x{mask.shape[0]}, "
+                f"expected {masks[0].shape[1]}x{masks[0].shape[0]} like the first"
+            )
+        masks.append(mask)
+    return np.stack(masks)
+
+
+def _looks_like_masks(paths: list[Path]) -> bool:
+    """True when the first images are single-channel (or grey) with at most two values."""
+    for path in paths[:3]:
+        image = _read_image(path, cv2.IMREAD_UNCHANGED)
+        if image.ndim == 3:
+            if not all(np.array_equal(image[..., 0], image[..., c]) for c in range(1, image.shape[2])):
+                return False
+            image = image[..., 0]
+        if len(np.unique(image)) > 2 or (len(np.unique(image)) == 2 and image.min() != 0):
+            return False
+    return True
+
+
+def read_frames(source: str | Path, frame_indices) -> np.ndarray:
+    """Read frames of a video or image folder by index.
+
+    Args:
+        source: video file or image folder.
+        frame_indices: (N,) indices into the source.
+
+    Returns:
+        (N, H, W, 3) uint8 RGB frames.
+    """
+    path = Path(source)
+    indices = [int(i) for i in np.asarray(frame_indices).ravel()]
+    if not indices:
+        raise ValueError("frame_indices must not be empty")
+    if path.is_dir():
+        paths = _list_images(path)
+        if max(indices) >= len(paths) or min(indices) < 0:
+            raise ValueError(f"frame index out of range for {str(path)!r} with {len(paths)} images")
+        frames = [_read_image(paths[i], cv2.IMREAD_COLOR) for i in indices]
+    else:
+        video, _ = _read_video(path, min(indices), max(indices) + 1)
+        frames = [video[i - min(indices)] for i in indices]
+    return np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2RGB) for f in frames])
+
+
+# --------------------------------------------------------------------------------------
+# Segmentation
+# --------------------------------------------------------------------------------------
+
+
+def _estimate_background(frames: np.ndarray, settings: SegmentationSettings) -> np.ndarray:
+    """(H, W, 3) float32 background from (T, H, W, 3) uint8 BGR frames."""
+    step = max(1, math.ceil(len(frames) / settings.max_background_frames))
+    sample = frames[::step]
+    if settings.method == "median":
+        return np.median(sample, axis=0).astype(np.float32)
+    subtractor = cv2.createBackgroundSubtractorMOG2(history=len(sample), detectShadows=False)
+    for frame in sample:
+        subtractor.apply(frame)
+    return subtractor.getBackgroundImage().astype(np.float32)
+
+
+def _morph(masks: np.ndarray, op: str, radius: int) -> np.ndarray:
+    """Batched binary morphology with a (2r+1)^2 square on (T, H, W) bool masks.
+
+    A flat square element makes dilation a max-pool and erosion a min-pool, which on CPU is
+    ~5x faster than ``kornia.morphology`` (same result, outside pixels ignored).
+    """
+    if radius == 0:
+        return masks
+    images = torch.from_numpy(masks.astype(np.float32))[:, None]  # (T, 1, H, W)
+    size = 2 * radius + 1
+
+    def dilate(x):
+        return torch.nn.functional.max_pool2d(x, size, stride=1, padding=radius)
+
+    def erode(x):
+        return -dilate(-x)
+
+    steps = {"dilation": (dilate,), "erosion": (erode,), "opening": (erode, dilate),
+             "closing": (dilate, erode)}[op]
+    for step in steps:
+        images = step(images)
+    return images[:, 0].numpy() > 0.5
+
+
+def _components(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Labels (H, W) and areas (N,) of the 8-connected components, background excluded."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    return labels, stats[1:, cv2.CC_STAT_AREA]
+
+
+def _largest(mask: np.ndarray) -> np.ndarray:
+    labels, areas = _components(mask)
+    if len(areas) == 0:
+        return np.zeros_like(mask, bool)
+    return labels == 1 + int(np.argmax(areas))
+
+
+def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
+    """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached."""
+    background = _estimate_background(frames, settings)
+    diff = frames.astype(np.float32) - background  # (T, H, W, 3)
+    magnitude = np.sqrt((diff**2).sum(-1))  # (T, H, W)
+    centre = float(np.median(magnitude))
+    noise = 1.4826 * float(np.median(np.abs(magnitude - centre)))
+    threshold = centre + settings.noise_sigmas * max(noise, 1.0)
+
+    detected = _morph(magnitude > threshold, "opening", settings.morph_radius)
+    seeds = np.zeros_like(detected)
+    second_frac = np.zeros(len(frames), np.float32)
+    for t, mask in enumerate(detected):
+        labels, areas = _components(mask)
+        if len(areas) == 0 or areas.max() < settings.min_area:
+            continue
+        order = np.argsort(areas)[::-1]
+        seeds[t] = labels == 1 + order[0]
+        if len(areas) > 1:
+            second_frac[t] = areas[order[1]] / areas[order[0]] if areas[order[1]] >= settings.min_area else 0
+
+    # Albedo direction A of the object from its confident (eroded) pixels in all frames.
+    core = _morph(seeds, "erosion", 1)
+    if core.sum() < 10:
+        core = seeds
+    if not core.any():
+        return {"masks": seeds, "background": background, "second_frac": second_frac}
+    colours = frames[core].astype(np.float32)
+    colours /= np.maximum(np.linalg.norm(colours, axis=1, keepdims=True), 1e-6)
+    albedo = np.median(colours, axis=0)
+    albedo /= np.linalg.norm(albedo)
+
+    # Per pixel, D = u A - a B (u = a s): 2x2 normal equations solved in closed form.
+    a_dot_b = background @ albedo  # (H, W)
+    b_dot_b = (background**2).sum(-1)
+    det = b_dot_b - a_dot_b**2  # |B|^2 sin^2(angle(A, B))
+    well_posed = det > 100.0  # |B| sin(angle) > 10 grey levels, else fall back to |D| / contrast
+
+    region = _morph(seeds, "dilation", 2 * settings.morph_radius + 1)
+    masks = np.zeros_like(seeds)
+    for t in range(len(frames)):
+        if not seeds[t].any():
+            continue
+        d_dot_b = (diff[t] * background).sum(-1)
+        coverage = (a_dot_b * (diff[t] @ albedo) - d_dot_b) / np.maximum(det, 1e-6)
+        contrast = float(np.percentile(magnitude[t][seeds[t]], 90))
+        coverage = np.where(well_posed, coverage, magnitude[t] / max(contrast, 1e-6))
+        if settings.alpha_smoothing > 0:
+            coverage = cv2.GaussianBlur(coverage.astype(np.float32), (0, 0), settings.alpha_smoothing)
+        masks[t] = (coverage >= settings.alpha_threshold) & region[t]
+    masks = _morph(masks, "closing", settings.morph_radius)
+    for t in range(len(frames)):
+        if masks[t].any():
+            masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
+    return {"masks": masks, "background": background, "second_frac": second_frac}
+
+
+# --------------------------------------------------------------------------------------
+# Boxes, flags, undistortion, cache
+# --------------------------------------------------------------------------------------
+
+
+def _boxes(masks: np.ndarray) -> np.ndarray:
+    """(T, 4) inclusive ``(x0, y0, x1, y1)`` of (T, H, W) masks; NaN for empty masks."""
+    boxes = np.full((len(masks), 4), np.nan)
+    for t, mask in enumerate(masks):
+        rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        if len(rows):
+            boxes[t] = (cols[0], rows[0], cols[-1], rows[-1])
+    return boxes
+
+
+def _flag(masks: np.ndarray, second_frac: np.ndarray, settings: SegmentationSettings) -> list[str]:
+    """One reason per frame, ``""`` for frames fit to use."""
+    areas = masks.sum(axis=(1, 2))
+    reasons = []
+    for t, mask in enumerate(masks):
+        if areas[t] < settings.min_area:
+            reasons.append("no object")
+        elif mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
+            reasons.append("touches the image border")
+        elif second_frac[t] >= settings.second_component_frac:
+            reasons.append("several large components")
+        else:
+            reasons.append("")
+    # Area jumps are judged against neighbours (three each side) that passed the checks above.
+    clean = [r == "" for r in reasons]
+    for t in range(len(masks)):
+        neighbours = [areas[s] for s in range(max(t - 3, 0), min(t + 4, len(masks)))
+                      if s != t and clean[s]]
+        if not clean[t] or not neighbours:
+            continue
+        ratio = areas[t] / np.median(neighbours)
+        if max(ratio, 1.0 / ratio) > settings.area_jump:
+            reasons[t] = f"area jumps x{ratio:.2f} vs neighbours"
+    return reasons
+
+
+def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
+    """Undistort (T, H, W) masks with the camera's own K (nearest neighbour)."""
+    maps = cv2.initUndistortRectifyMap(
+        camera.K, np.asarray(camera.dist_coeffs, np.float64), None, camera.K,
+        (camera.width, camera.height), cv2.CV_32FC1,
+    )
+    return np.stack([
+        cv2.remap(m.astype(np.uint8), *maps, interpolation=cv2.INTER_NEAREST) > 0 for m in masks
+    ])
+
+
+def _cache_key(path: Path, kind: str, start: int, stop: int | None,
+               settings: SegmentationSettings) -> str:
+    files = _list_images(path) if path.is_dir() else [path]
+    stamps = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]
+    payload = json.dumps({
+        "version": _CACHE_VERSION, "path": str(path.resolve()), "files": stamps, "kind": kind,
+        "start": start, "stop": stop, "settings": asdict(settings),
+    }, sort_keys=True)
+    return hashlib.sha256(payload.encode()).hexdigest()[:20]
+
+
+def _load_cache(file: Path) -> dict | None:
+    if not file.is_file():
+        return None
+    try:
+        with np.load(file) as archive:
+            return {name: archive[name] for name in archive.files}
+    except (OSError, ValueError, EOFError):  # a damaged cache is recomputed, not fatal
+        return None
+
+
+# --------------------------------------------------------------------------------------
+# Main verb
+# --------------------------------------------------------------------------------------
+
+
+def load_observation(
+    path: str | Path,
+    *,
+    kind: str = "auto",
+    camera: Camera | str | Path | None = None,
+    fps: float | None = None,
+    start: int = 0,
+    stop: int | None = None,
+    cache_dir: str | Path | None = None,
+    method: str = "median",
+    settings: SegmentationSettings | None = None,
+) -> Observation:
+    """Masks, boxes and frame flags of the thrown object in a recording.
+
+    Args:
+        path: video file, folder of images (sorted by name) or folder of mask PNGs.
+        kind: ``"auto"``, ``"video"``, ``"images"`` or ``"masks"``; ``"auto"`` takes a file
+            for a video and a folder of single-channel binary images for masks.
+        camera: intrinsics or a camera file; frames must have its size, and masks are
+            undistorted when it has distortion coefficients.
+        fps: frames per second; overrides the video's own, required for folders.
+        start, stop: frame range ``start:stop`` of the source (``stop=None``: to the end).
+        cache_dir: folder for the segmentation cache (``None``: no cache).
+        method: background model, one of ``BACKGROUND_METHODS`` (ignored when ``settings``
+            is given).
+        settings: all segmentation settings.
+
+    Returns:
+        The observation: (T, H, W) masks, (T, 4) boxes, (T,) used flags with reasons.
+
+    Raises:
+        ValueError: missing or unreadable input, no frames, nothing moving, a frame size that
+            is not the camera's, a bad fps, kind, method or frame range.
+    """
+    settings = settings or SegmentationSettings(method=method)
+    path = Path(path)
+    if kind not in KINDS:
+        raise ValueError(f'Invalid kind "{kind}". Must be one of {", ".join(KINDS)}')
+    if not path.exists():
+        raise ValueError(f"input {str(path)!r} does not exist")
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be positive, got {fps!r}")
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or start < 0:
+        raise ValueError(f"start must be a non-negative integer, got {start!r}")
+    if stop is not None and (not isinstance(stop, (int, np.integer)) or stop <= start):
+        raise ValueError(f"stop must be an integer > start = {start}, got {stop!r}")
+    if isinstance(camera, (str, Path)):
+        camera = Camera.from_file(camera)
+
+    if path.is_dir():
+        paths = _list_images(path)
+        if not paths:
+            raise ValueError(f"folder {str(path)!r} has no frames (no {'/'.join(IMAGE_SUFFIXES)} files)")
+        if kind == "video":
+            raise ValueError(f"kind='video' needs a file, got the folder {str(path)!r}")
+        if kind == "auto":
+            kind = "masks" if _looks_like_masks(paths) else "images"
+        if fps is None:
+            raise ValueError(f"fps must be given for a folder of {kind} ({str(path)!r})")
+    else:
+        if kind in ("images", "masks"):
+            raise ValueError(f"kind={kind!r} needs a folder, got the file {str(path)!r}")
+        kind = "video"
+
+    cache_file = None
+    cached = None
+    if kind != "masks" and cache_dir is not None:
+        cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings)}.npz"
+        cached = _load_cache(cache_file)
+
+    background = None
+    if kind == "masks":
+        masks = _read_mask_folder(paths, start, stop)
+        second_frac = np.array([
+            (lambda a: a[1] / a[0] if len(a) > 1 and a[1] >= settings.min_area else 0.0)(
+                np.sort(_components(m)[1])[::-1]) for m in masks
+        ])
+        frame_fps = float(fps)
+    elif cached is not None:
+        masks, second_frac = cached["masks"].astype(bool), cached["second_frac"]
+        background = cached["background"]
+        frame_fps = float(fps) if fps is not None else float(cached["fps"])
+    else:
+        if kind == "video":
+            frames, file_fps = _read_video(path, start, stop)
+        else:
+            frames, file_fps = _read_image_folder(paths, start, stop), 0.0
+        _check_size(frames.shape[1:3], camera, path)
+        segmented = _segment(frames, settings)
+        masks, second_frac = segmented["masks"], segmented["second_frac"]
+        background = cv2.cvtColor(
+            np.clip(np.round(segmented["background"]), 0, 255).astype(np.uint8), cv2.COLOR_BGR2RGB)
+        if fps is None and not (math.isfinite(file_fps) and file_fps > 0):
+            raise ValueError(f"video {str(path)!r} reports no frame rate (fps = {file_fps}); give fps")
+        frame_fps = float(fps) if fps is not None else file_fps
+        if cache_file is not None:
+            cache_file.parent.mkdir(parents=True, exist_ok=True)
+            np.savez_compressed(cache_file, masks=masks, second_frac=second_frac,
+                                background=background, fps=file_fps)
+    _check_size(masks.shape[1:3], camera, path)
+
+    if camera is not None and any(c != 0 for c in camera.dist_coeffs):
+        masks = _undistort(masks, camera)
+    reasons = _flag(masks, second_frac, settings)
+    if all(r == "no object" for r in reasons):
+        raise ValueError(
+            f"nothing moves in {str(path)!r}: no frame has an object "
+            f"(all {len(masks)} frames match the background)"
+        )
+    return Observation(
+        masks=masks,
+        boxes=_boxes(masks),
+        used=np.array([r == "" for r in reasons]),
+        reasons=reasons,
+        fps=frame_fps,
+        frame_indices=np.arange(start, start + len(masks), dtype=np.int64),
+        camera=camera,
+        source=str(path),
+        kind=kind,
+        from_cache=cached is not None,
+        background=background,
+        areas=masks.sum(axis=(1, 2)).astype(np.int64),
+    )
+
+
+def _check_size(size: tuple[int, int], camera: Camera | None, path: Path) -> None:
+    height, width = size
+    if camera is not None and (width, height) != (camera.width, camera.height):
+        raise ValueError(
+            f"frames of {str(path)!r} are {width}x{height} but the camera says "
+            f"{camera.width}x{camera.height}"
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Pictures
+# --------------------------------------------------------------------------------------
+
+
+def contact_sheet(observation: Observation, frames: np.ndarray | None, path: str | Path,
+                  n: int = 12, min_tile_width: int = 320) -> Path:
+    """Write a PNG grid of ``n`` evenly spaced frames with the mask outline drawn.
+
+    Outlines are green on used frames and red on flagged ones; each tile is labelled with the
+    frame number and ``ok`` or the flag reason. Tiny frames are upscaled (nearest neighbour)
+    to at least ``min_tile_width`` pixels.
+
+    Args:
+        observation: the result of :func:`load_observation`.
+        frames: (T, H, W, 3) uint8 RGB or (T, H, W) grey frames matching the observation, or
+            None to read them from ``observation.source`` (grey when the source is masks).
+        path: PNG file to write (parent folders are created).
+        n: number of tiles.
+
+    Returns:
+        The path written.
+    """
+    count = len(observation.masks)
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    picks = np.unique(np.linspace(0, count - 1, min(n, count)).round().astype(int))
+    height, width = observation.masks.shape[1:]
+    if frames is None:
+        if observation.kind == "masks":
+            tiles = np.full((len(picks), height, width, 3), 96, np.uint8)
+        else:
+            tiles = read_frames(observation.source, observation.frame_indices[picks])
+            camera = observation.camera
+            if camera is not None and any(c != 0 for c in camera.dist_coeffs):
+                tiles = np.stack([cv2.undistort(f, camera.K, np.asarray(camera.dist_coeffs))
+                                  for f in tiles])
+    else:
+        frames = np.asarray(frames)
+        if frames.shape[:3] != observation.masks.shape:
+            raise ValueError(
+                f"frames must have shape (T, H, W[, 3]) = {observation.masks.shape}, "
+                f"got {frames.shape}"
+            )
+        tiles = frames[picks]
+        if tiles.ndim == 3:
+            tiles = np.repeat(tiles[..., None], 3, axis=-1)
+    tiles = tiles.astype(np.uint8)
+
+    scale = max(1, math.ceil(min_tile_width / width))
+    bar = 22 + 4 * (scale > 1)
+    cells = []
+    for tile, t in zip(tiles, picks):
+        image = cv2.cvtColor(cv2.resize(tile, (width * scale, height * scale),
+                                        interpolation=cv2.INTER_NEAREST), cv2.COLOR_RGB2BGR)
+        mask = cv2.resize(observation.masks[t].astype(np.uint8), (width * scale, height * scale),
+                          interpolation=cv2.INTER_NEAREST)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        used = bool(observation.used[t])
+        colour = (0, 255, 0) if used else (0, 0, 255)  # BGR
+        cv2.drawContours(image, contours, -1, colour, max(1, scale // 2))
+        label = np.zeros((bar, image.shape[1], 3), np.uint8)
+        text = f"frame {observation.frame_indices[t]}: " + ("ok" if used else observation.reasons[t])
+        cv2.putText(label, text, (4, bar - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+        cells.append(np.vstack([image, label]))
+    columns = math.ceil(math.sqrt(len(cells)))
+    rows = math.ceil(len(cells) / columns)
+    blank = np.zeros_like(cells[0])
+    cells += [blank] * (rows * columns - len(cells))
+    grid = np.vstack([np.hstack(cells[r * columns:(r + 1) * columns]) for r in range(rows)])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), grid):
+        raise ValueError(f"could not write the contact sheet {str(path)!r}")
+    return path
