@@ -8,30 +8,20 @@ from __future__ import annotations
 
 import logging
 import sys
-from importlib import resources
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-
-def _data_path(relative: str) -> str:
-    """``${torchfit_data:recordings/tshape/video.mp4}``: a file shipped inside the package."""
-    return str(resources.files("torchfit").joinpath(relative))
-
-
-OmegaConf.register_new_resolver("torchfit_data", _data_path, replace=True)
+from .run import run  # also registers the ${torchfit_data:...} resolver
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="config")
 def main(cfg: DictConfig) -> None:
-    from .run import run
-
     logging.getLogger("torchfit").setLevel(logging.WARNING if cfg.quiet else logging.INFO)
     try:
         run(cfg, HydraConfig.get().runtime.output_dir)
     except ValueError as err:  # bad input: one clear line and a non-zero exit, no traceback
-        logging.getLogger("torchfit").error("%s", err)
         print(f"torchfit: error: {err}", file=sys.stderr)
         sys.exit(2)
 

@@ -28,6 +28,16 @@ __all__ = ["run", "build_shape", "build_camera", "build_problem", "resolve_devic
 
 log = logging.getLogger("torchfit")
 
+
+def _data_path(relative: str) -> str:
+    """``${torchfit_data:recordings/tshape/video.mp4}``: a file shipped inside the package."""
+    from importlib import resources
+
+    return str(resources.files("torchfit").joinpath(relative))
+
+
+OmegaConf.register_new_resolver("torchfit_data", _data_path, replace=True)
+
 _DIMENSIONS = {"tshape": ("crossbar_length", "stem_length", "thickness"), "box": ("extents",),
                "cylinder": ("radius", "height", "sections"), "sphere": ("radius", "subdivisions")}
 

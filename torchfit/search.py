@@ -66,17 +66,22 @@ class SearchSettings:
     anchor_steps: int = 40
     seed_frames: int = 10
     survivors: int = 48
-    stages: tuple = ((0.35, 32, 1.5, 40, 0.5), (0.7, 32, 1.0, 40, 0.5), (1.0, 48, 0.7, 40, 0.5),
-                     (1.0, 64, 0.5, 30, 1.0))
+    stages: tuple = ((0.35, 32, 1.5, 40, 0.5), (0.7, 32, 1.0, 30, 0.5), (1.0, 48, 0.7, 30, 0.5))
     max_spin: float = 40.0
     final: int = 6
-    polish_iterations: int = 40
+    polish_iterations: int = 100
     polish_crop: int = 64
     polish_sigma: float = 0.5
     lr_scale: float = 1.0
     seed: int = 0
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "stages", tuple(tuple(stage) for stage in self.stages))
+        for stage in self.stages:
+            if len(stage) != 5 or not (0 < stage[0] <= 1 and stage[1] >= 8 and stage[2] > 0 and stage[3] >= 0
+                                       and 0 < stage[4] <= 1):
+                raise ValueError("search.stages entries must be [fraction of frames in (0, 1], crop >= 8 px, "
+                                 f"sigma > 0, steps >= 0, fraction kept in (0, 1]], got {list(stage)}")
         for name in ("orientations", "keep_per_anchor", "seed_frames", "survivors", "final"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"search.{name} must be a positive count, got {getattr(self, name)}")
@@ -98,8 +103,9 @@ class Problem:
         boxes: (T, 4) observed boxes ``(u0, v0, u1, v1)``.
         used: (T,) bool, frames that count in the loss.
         g: gravitational acceleration, m/s².
-        step_size: largest RK4 step, seconds (1/120 s keeps rotation errors under 0.1° up
-            to 20 rad/s).
+        max_rotation_step: the RK4 step is chosen so that the fastest candidate turns at most
+            this many radians per step (0.2 rad keeps the rotation error of a 45-frame clip
+            under 0.1°; measured in tests/test_dynamics.py).
     """
 
     shape: Shape
@@ -111,7 +117,7 @@ class Problem:
     boxes: Tensor
     used: Tensor
     g: float = 9.81
-    step_size: float = 1.0 / 120
+    max_rotation_step: float = 0.2
     _targets: dict = field(default_factory=dict, repr=False)
 
     def windows(self, crop: int) -> Tensor:
@@ -373,8 +379,10 @@ def _log_rotation(rot: Tensor) -> Tensor:
 def _candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float) -> Tensor:
     """(B,) silhouette loss of the candidates over the first ``frames`` frames."""
     times = problem.times[:frames]
-    traj = integrate(cands.state(problem.body), times, problem.body, cands.gravity(problem.g),
-                     step_size=problem.step_size)
+    spin = float(cands.omega.detach().norm(dim=-1).max()) if len(cands) else 0.0
+    frame_dt = float(times[1] - times[0]) if len(times) > 1 else 1.0
+    step = min(frame_dt, max(problem.max_rotation_step / max(spin, 1e-6), frame_dt / 8))
+    traj = integrate(cands.state(problem.body), times, problem.body, cands.gravity(problem.g), step_size=step)
     windows = problem.windows(crop)[:frames].expand(len(cands), frames, 3)
     cover = render_silhouettes(problem.mesh, problem.camera, traj.rot, traj.position, windows,
                                size=(crop, crop), sigma=sigma)
@@ -401,9 +409,9 @@ def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: fl
                 torch.nan_to_num_(tensor.grad, nan=0.0, posinf=0.0, neginf=0.0)
         opt.step()
         sched.step()
-        curve.append(float(loss.min()))
+        curve.append(float(loss.detach().min()))
         if progress and (step % 20 == 0 or step == steps - 1):
-            progress(f"{label}: step {step + 1}/{steps}, {len(cands)} candidates, best loss {float(loss.min()):.5f}")
+            progress(f"{label}: step {step + 1}/{steps}, {len(cands)} candidates, best loss {float(loss.detach().min()):.5f}")
     with torch.no_grad():
         return _candidate_losses(problem, cands, frames, crop, sigma)
 
@@ -436,13 +444,29 @@ def _polish(problem: Problem, cands: Candidates, crop: int, sigma: float, iterat
         loss = _candidate_losses(problem, cands, frames, crop, sigma)
         total = torch.where(torch.isfinite(loss), loss, torch.zeros_like(loss)).sum()
         total.backward()
-        curve.append(float(loss.min()))
+        curve.append(float(loss.detach().min()))
         return total
 
     opt.step(closure)
     with torch.no_grad():
         assign(unit.detach())
         return _candidate_losses(problem, cands, frames, crop, sigma)
+
+
+def _distinct(cands: Candidates, losses: Tensor, symmetries: Tensor, limit: int) -> tuple[Candidates, Tensor]:
+    """Candidates (sorted best first) whose orientations differ by ≥ 5° modulo symmetry."""
+    quat = cands.quat().detach()
+    keep: list[int] = []
+    for i in range(len(cands)):
+        if not torch.isfinite(losses[i]):
+            continue
+        if keep and _symmetry_distance(quat[i:i + 1], quat[keep], symmetries).min() < math.radians(5):
+            continue
+        keep.append(i)
+        if len(keep) == limit:
+            break
+    index = torch.tensor(keep, dtype=torch.long, device=losses.device)
+    return cands.select(index), losses[index]
 
 
 def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
@@ -533,27 +557,16 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
         cands, losses = cands.select(order), losses[order]
         history.append((f"refine {index + 1}", time.perf_counter() - clock, float(losses[0]), len(cands)))
 
+    # stage 5: distinct minima (modulo symmetry), polished, best first
+    cands, losses = _distinct(cands, losses, symmetries, settings.final)
     clock = time.perf_counter()
     losses = _polish(problem, cands, settings.polish_crop, settings.polish_sigma, settings.polish_iterations, curve)
     cands = cands.rebase()
     order = torch.argsort(losses)
     cands, losses = cands.select(order), losses[order]
+    cands, losses = _distinct(cands, losses, symmetries, settings.final)
     history.append(("polish", time.perf_counter() - clock, float(losses[0]), len(cands)))
     say(f"polish: best loss {float(losses[0]):.5f}")
-
-    # stage 5: distinct minima, best first
-    quat = cands.quat().detach()
-    distinct: list[int] = []
-    for i in range(len(cands)):
-        if not torch.isfinite(losses[i]):
-            continue
-        if distinct and _symmetry_distance(quat[i:i + 1], quat[distinct], symmetries).min() < math.radians(5):
-            continue
-        distinct.append(i)
-        if len(distinct) == settings.final:
-            break
-    index = torch.tensor(distinct, dtype=torch.long)
-    cands, losses = cands.select(index), losses[index]
     with torch.no_grad():
         state = cands.state(problem.body)
     return FitResult(cands, losses.detach(), state.detach(), history, curve, track)

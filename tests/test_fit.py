@@ -1,0 +1,121 @@
+"""End-to-end: Hydra configs, the search and the outputs, on the shipped recordings (CPU)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from hydra import compose, initialize_config_module
+from hydra.errors import ConfigCompositionException
+
+from torchfit.run import run
+
+SMALL = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+EXPERIMENTS = sorted(p.stem for p in (Path(__file__).resolve().parents[1] / "torchfit" / "configs"
+                                      / "experiment").glob("*.yaml"))
+TWO_STEPS = ["search=quick", "search.orientations=60", "search.anchor_steps=2", "search.survivors=4",
+             "search.stages=[[1.0,16,1.5,2,1.0]]", "search.polish_iterations=2", "search.polish_crop=16",
+             "outputs.overlay_video=false", "outputs.plots=false", "quiet=true"]
+SMALL_DATA = [f"data.video={SMALL / 'video.mp4'}", f"object.mesh={SMALL / 'mesh.obj'}",
+              f"camera.file={SMALL / 'camera.json'}", f"data.truth={SMALL / 'truth.json'}"]
+
+
+def _compose(overrides):
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_config_runs_two_steps(experiment, tmp_path):
+    extra = SMALL_DATA if experiment == "fit" else []
+    cfg = _compose([f"experiment={experiment}", *TWO_STEPS, *extra])
+    content = run(cfg, tmp_path)
+    assert (tmp_path / "result.json").exists()
+    assert len(content["per_frame"]["frame"]) == len(content["per_frame"]["iou"])
+    assert np.isfinite(content["loss"])
+
+
+def test_fit_small_recording_end_to_end(tmp_path):
+    cfg = _compose(["experiment=fit", "search=quick", *SMALL_DATA])
+    content = run(cfg, tmp_path)
+    result = json.loads((tmp_path / "result.json").read_text())
+    params = result["params"]
+    assert set(params) >= {"position", "orientation_wxyz", "R", "velocity", "angular_velocity", "gravity_dir",
+                           "tilt_deg", "roll_deg"}
+    np.testing.assert_allclose(np.asarray(params["R"]) @ np.asarray(params["R"]).T, np.eye(3), atol=1e-6)
+    per_frame = result["per_frame"]
+    assert len(per_frame["frame"]) == 12 and per_frame["time"][0] == 0.0
+    for name in ("iou.png", "loss.png", "overlay.mp4"):
+        assert (tmp_path / name).stat().st_size > 0
+    # the quick search on a 160x120 clip: orientation found, silhouettes overlap well
+    assert content["truth"]["rotation_error_deg"] < 10.0
+    assert content["mean_iou"] > 0.6
+    assert result["candidates"][0]["loss"] <= min(c["loss"] for c in result["candidates"])
+
+
+def test_fit_is_deterministic_for_a_seed(tmp_path):
+    first = run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA]), tmp_path / "a")
+    second = run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA]), tmp_path / "b")
+    assert first["params"] == second["params"]
+
+
+def test_mistyped_key_fails():
+    with pytest.raises(ConfigCompositionException, match="orientationz"):
+        _compose(["experiment=fit", "search.orientationz=5"])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("data.fps=-5", "data.fps must be positive"),
+    ("search.survivors=0", "search.survivors must be a positive count"),
+    ("search.stages=[[1.0,16,1.5,2]]", "search.stages entries"),
+    ("device=tpu", "device must be auto, cpu or cuda"),
+])
+def test_bad_config_values_raise(override, message, tmp_path):
+    with pytest.raises(ValueError, match=message):
+        run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA, override]), tmp_path)
+
+
+def test_millimetre_mesh_is_rejected(tmp_path):
+    mesh = trimesh.load(SMALL / "mesh.obj", force="mesh")
+    mesh.apply_scale(1000.0)
+    path = tmp_path / "mesh_mm.obj"
+    mesh.export(path)
+    with pytest.raises(ValueError, match="millimetres given as metres"):
+        run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA, f"object.mesh={path}"]), tmp_path)
+
+
+def test_too_short_recording_is_rejected(tmp_path):
+    with pytest.raises(ValueError, match="too short to fit"):
+        run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA, "data.stop=4"]), tmp_path)
+
+
+def _cli(args, cwd):
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", "torchfit", *args], cwd=cwd, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+def test_cli_multirun_sweep_writes_one_folder_per_run(tmp_path):
+    proc = _cli(["-m", "experiment=fit", *TWO_STEPS, *SMALL_DATA, "seed=0,1"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    results = sorted(tmp_path.glob("multirun/*/*/*/result.json"))
+    assert len(results) == 2
+
+
+def test_cli_bad_input_is_one_line_and_nonzero(tmp_path):
+    proc = _cli(["experiment=fit", *TWO_STEPS, f"data.video={tmp_path / 'missing.mp4'}",
+                 f"object.mesh={SMALL / 'mesh.obj'}", f"camera.file={SMALL / 'camera.json'}"], tmp_path)
+    assert proc.returncode == 2
+    assert "torchfit: error:" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_configs_resolve_outside_the_checkout(tmp_path):
+    # run from an empty folder: configs and the shipped recording come from the installed package
+    proc = _cli(["experiment=tshape", "--cfg", "job", "--resolve"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    video = [line.split(":", 1)[1].strip() for line in proc.stdout.splitlines() if line.strip().startswith("video:")]
+    assert video and Path(video[0]).is_file()
