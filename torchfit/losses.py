@@ -44,18 +44,33 @@ def sample_targets(masks: Tensor, windows: Tensor, size: tuple[int, int]) -> Ten
     return torch.stack(out)
 
 
-def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor) -> Tensor:
-    """Mean squared silhouette difference per candidate (the paper's SSD, per crop pixel).
+def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor, centroid_weight: float = 1.0) -> Tensor:
+    """Mean squared silhouette difference per candidate (the paper's SSD, per crop pixel), plus a
+    centroid term: the squared distance between the rendered and the observed coverage
+    centroids in units of the crop size, which keeps a pull on translation when the two
+    silhouettes barely overlap.
 
     Args:
         coverage: (B, T, h, w) rendered coverage.
         target: (T, h, w) observed coverage on the same grids.
         weights: (T,) frame weights (0 for frames left out).
+        centroid_weight: weight of the centroid term.
 
     Returns:
         (B,) loss.
     """
     per_frame = (coverage - target).square().mean(dim=(-2, -1))  # (B, T)
+    if centroid_weight:
+        height, width = coverage.shape[-2:]
+        rows = torch.linspace(0, 1, height, dtype=coverage.dtype, device=coverage.device)
+        cols = torch.linspace(0, 1, width, dtype=coverage.dtype, device=coverage.device)
+
+        def centroid(image: Tensor) -> Tensor:
+            mass = image.sum(dim=(-2, -1)).clamp(min=1e-6)
+            return torch.stack(((image.sum(-2) * cols).sum(-1), (image.sum(-1) * rows).sum(-1)), -1) / mass[..., None]
+
+        offset = centroid(coverage) - centroid(target)  # (B, T, 2), crop sizes
+        per_frame = per_frame + centroid_weight * offset.square().sum(-1)
     return (per_frame * weights).sum(-1) / weights.sum().clamp(min=1e-12)
 
 

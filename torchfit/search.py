@@ -553,8 +553,10 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
                        f"refine {index + 1}/{len(settings.stages)}")
         cands = cands.rebase()
         n_keep = max(settings.final, int(math.ceil(len(cands) * keep_fraction)))
-        order = torch.argsort(losses)[:n_keep]
-        cands, losses = cands.select(order), losses[order]
+        # successive halving over *distinct* hypotheses: seeds that converged to the same
+        # solution would otherwise crowd out a different one with a slightly higher loss
+        order = torch.argsort(losses)
+        cands, losses = _distinct(cands.select(order), losses[order], symmetries, n_keep)
         history.append((f"refine {index + 1}", time.perf_counter() - clock, float(losses[0]), len(cands)))
 
     # stage 5: distinct minima (modulo symmetry), polished, best first
