@@ -160,8 +160,8 @@ def _plots(out_dir: Path, per_frame: dict, curve: list) -> None:
     if curve:
         fig, ax = plt.subplots(figsize=(6, 3.5))
         ax.semilogy(curve)
-        ax.set_xlabel("Adam step (all refinement stages)")
-        ax.set_ylabel("best silhouette loss")
+        ax.set_xlabel("optimiser step (Adam stages, then L-BFGS evaluations)")
+        ax.set_ylabel("best loss (jumps where a stage adds frames or pixels)")
         ax.grid(alpha=0.3)
         fig.tight_layout()
         fig.savefig(out_dir / "loss.png", dpi=110)
