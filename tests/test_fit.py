@@ -49,7 +49,7 @@ def test_fit_small_recording_end_to_end(tmp_path):
     np.testing.assert_allclose(np.asarray(params["R"]) @ np.asarray(params["R"]).T, np.eye(3), atol=1e-6)
     per_frame = result["per_frame"]
     assert len(per_frame["frame"]) == 12 and per_frame["time"][0] == 0.0
-    for name in ("iou.png", "loss.png", "overlay.mp4"):
+    for name in ("iou.png", "loss.png", "overlay.mp4", "contact_sheet.png"):
         assert (tmp_path / name).stat().st_size > 0
     # the quick search on a 160x120 clip: orientation found, silhouettes overlap well
     assert content["truth"]["rotation_error_deg"] < 10.0

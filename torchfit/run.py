@@ -22,7 +22,7 @@ from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
 from .search import Problem, SearchSettings, fit
 from .shape import PRIMITIVES, Shape, load_shape
-from .video import Observation, SegmentationSettings, load_observation
+from .video import Observation, SegmentationSettings, contact_sheet, load_observation
 
 __all__ = ["run", "build_shape", "build_camera", "build_problem", "resolve_device"]
 
@@ -193,6 +193,8 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
         stop=data.stop, cache_dir=(out_dir / "cache") if data.cache else None,
         settings=SegmentationSettings(method=str(data.segmentation.method)))
     timing["segmentation_s"] = time.perf_counter() - clock
+    if cfg.outputs.plots:  # a glance at whether segmentation worked
+        contact_sheet(observation, None, out_dir / "contact_sheet.png")
     say(f"recording: {len(observation.masks)} frames at {observation.fps:g} fps, "
         f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=dtype, device=device)
