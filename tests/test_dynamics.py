@@ -4,7 +4,7 @@ import torch
 
 from torchfit.dynamics import RigidBody, simulate
 from torchfit.effects import EFFECTS, Magnus, QuadraticDrag, make_effect
-from torchfit.rotation import axis_angle_to_quat, quat_to_matrix
+from torchfit.rotation import axis_angle_to_quat
 from torchfit.shape import load_shape
 
 F64 = torch.float64

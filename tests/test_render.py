@@ -6,8 +6,8 @@ from scipy.spatial import ConvexHull
 
 from torchfit import render
 from torchfit.camera import Camera, project
-from torchfit.render import (RenderMesh, contour_lines, coverage_from_lines, crop_windows, full_window,
-                             render_silhouettes, window_lines)
+from torchfit.render import (RenderMesh, coverage_from_lines, crop_windows, full_window,
+                             render_silhouettes)
 from torchfit.rotation import axis_angle_to_quat, quat_to_matrix
 from torchfit.shape import load_shape
 

@@ -27,7 +27,7 @@ from torchdiffeq import odeint
 from torchdiffeq._impl.odeint import SOLVERS
 
 from .effects import Effect, FlightState
-from .rotation import check_unit_quaternion, quat_multiply, quat_to_matrix
+from .rotation import check_unit_quaternion, quat_to_matrix
 
 __all__ = ["RigidBody", "Trajectory", "FreeFlight", "simulate", "integrate", "FIXED_STEP_METHODS"]
 

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
-__all__ = ["sample_targets", "silhouette_loss", "soft_iou", "mask_moments"]
+__all__ = ["sample_targets", "silhouette_loss", "mask_moments"]
 
 
 def sample_targets(masks: Tensor, windows: Tensor, size: tuple[int, int]) -> Tensor:
@@ -72,13 +72,6 @@ def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor, centroid_
         offset = centroid(coverage) - centroid(target)  # (B, T, 2), crop sizes
         per_frame = per_frame + centroid_weight * offset.square().sum(-1)
     return (per_frame * weights).sum(-1) / weights.sum().clamp(min=1e-12)
-
-
-def soft_iou(a: Tensor, b: Tensor) -> Tensor:
-    """Intersection over union of (..., H, W) coverages in [0, 1]; returns (...)."""
-    inter = (a * b).sum(dim=(-2, -1))
-    union = (a + b - a * b).sum(dim=(-2, -1))
-    return inter / union.clamp(min=1e-12)
 
 
 def mask_moments(masks: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -24,7 +24,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -327,17 +326,8 @@ def _anchor_orientations(problem: Problem, frame: int, com: Tensor, settings: Se
     with torch.no_grad():
         scores = torch.cat([_frame_loss(problem, frame, chunk, com.expand(len(chunk), 3), 24, 1.5)
                             for chunk in grid.split(1024)])
-    order = torch.argsort(scores)
-    # keep the best, skipping near-duplicates modulo symmetry
-    chosen: list[int] = []
-    pool = grid[order[: settings.keep_per_anchor * 8]]
-    for i in range(len(pool)):
-        if chosen and _symmetry_distance(pool[i:i + 1], pool[chosen], symmetries).min() < 0.25:
-            continue
-        chosen.append(i)
-        if len(chosen) == settings.keep_per_anchor * 2:
-            break
-    base = pool[chosen]
+    pool = grid[torch.argsort(scores)[: settings.keep_per_anchor * 8]]
+    base = pool[_spread(pool, symmetries, 0.25, settings.keep_per_anchor * 2)]
     delta = torch.zeros(len(base), 3, dtype=base.dtype, requires_grad=True)
     shift = torch.zeros(len(base), 3, dtype=base.dtype, requires_grad=True)
     opt = torch.optim.Adam([{"params": [delta], "lr": 0.05}, {"params": [shift], "lr": 0.004}])
@@ -351,16 +341,8 @@ def _anchor_orientations(problem: Problem, frame: int, com: Tensor, settings: Se
     with torch.no_grad():
         quat = quat_multiply(axis_angle_to_quat(delta), base)
         loss = _frame_loss(problem, frame, quat, com + shift, 48, 0.8)
-    order = torch.argsort(loss)
-    quat = quat[order]
-    chosen = []
-    for i in range(len(quat)):
-        if chosen and _symmetry_distance(quat[i:i + 1], quat[chosen], symmetries).min() < 0.1:
-            continue
-        chosen.append(i)
-        if len(chosen) == settings.keep_per_anchor:
-            break
-    return quat[chosen].detach()
+    quat = quat[torch.argsort(loss)].detach()
+    return quat[_spread(quat, symmetries, 0.1, settings.keep_per_anchor)]
 
 
 def _log_rotation(rot: Tensor) -> Tensor:
@@ -453,20 +435,24 @@ def _polish(problem: Problem, cands: Candidates, crop: int, sigma: float, iterat
         return _candidate_losses(problem, cands, frames, crop, sigma)
 
 
-def _distinct(cands: Candidates, losses: Tensor, symmetries: Tensor, limit: int) -> tuple[Candidates, Tensor]:
-    """Candidates (sorted best first) whose orientations differ by ≥ 5° modulo symmetry."""
-    quat = cands.quat().detach()
+def _spread(quat: Tensor, symmetries: Tensor, min_angle: float, limit: int) -> list[int]:
+    """Indices of the first ``limit`` orientations (in the given order, best first) that are at
+    least ``min_angle`` radians from every one kept before, modulo the shape's symmetry."""
     keep: list[int] = []
-    for i in range(len(cands)):
-        if not torch.isfinite(losses[i]):
-            continue
-        if keep and _symmetry_distance(quat[i:i + 1], quat[keep], symmetries).min() < math.radians(5):
+    for i in range(len(quat)):
+        if keep and _symmetry_distance(quat[i:i + 1], quat[keep], symmetries).min() < min_angle:
             continue
         keep.append(i)
         if len(keep) == limit:
             break
-    index = torch.tensor(keep, dtype=torch.long, device=losses.device)
-    return cands.select(index), losses[index]
+    return keep
+
+
+def _distinct(cands: Candidates, losses: Tensor, symmetries: Tensor, limit: int) -> tuple[Candidates, Tensor]:
+    """Finite-loss candidates (sorted best first) whose orientations differ by ≥ 5° modulo symmetry."""
+    finite = torch.nonzero(torch.isfinite(losses)).flatten()
+    keep = finite[_spread(cands.quat().detach()[finite], symmetries, math.radians(5), limit)]
+    return cands.select(keep), losses[keep]
 
 
 def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
@@ -528,12 +514,10 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     if first != 0:  # rotate back to t = 0 at constant spin
         t_first = float(problem.times[first])
         base = quat_multiply(axis_angle_to_quat(-omega * t_first), base)
-    accel = problem.g * gravity_direction(torch.tensor(track["tilt"]), torch.tensor(track["roll"])).to(dtype)
     count = len(base)
     seeds = Candidates(base, torch.zeros(count, 3, dtype=dtype), track["com"].to(dtype).expand(count, 3).clone(),
                        track["velocity"].to(dtype).expand(count, 3).clone(), omega,
                        torch.tensor([track["tilt"], track["roll"]], dtype=dtype).expand(count, 2).clone())
-    del accel
     seed_frames = min(n_frames, max(settings.seed_frames, second + 3))
     with torch.no_grad():
         scores = torch.cat([_candidate_losses(problem, seeds.select(idx), seed_frames, 24, 1.5)

@@ -41,7 +41,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -338,8 +338,8 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
     yaw = math.degrees(math.atan2(fwd[1], fwd[0]))
 
     if spec.shape == "tshape":
-        geoms = (f'<geom name="obj0" type="box" size="0.1 0.015 0.015" pos="0 0 0" material="obj"/>'
-                 f'<geom name="obj1" type="box" size="0.015 0.075 0.015" pos="0 0.09 0" material="obj"/>')
+        geoms = ('<geom name="obj0" type="box" size="0.1 0.015 0.015" pos="0 0 0" material="obj"/>'
+                 '<geom name="obj1" type="box" size="0.015 0.075 0.015" pos="0 0.09 0" material="obj"/>')
         mesh_asset = ""
     elif spec.shape == "box":
         geoms = '<geom name="obj0" type="box" size="0.06 0.04 0.025" material="obj"/>'
