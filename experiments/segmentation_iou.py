@@ -31,4 +31,4 @@ def main() -> dict:
 
 
 if __name__ == "__main__":
-    json.dump(main(), open("segmentation_iou.json", "w"), indent=1)
+    json.dump(main(), open(Path(__file__).with_suffix(".json"), "w"), indent=1)

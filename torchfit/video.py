@@ -47,7 +47,7 @@ __all__ = [
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,9 @@ class SegmentationSettings:
         alpha_threshold: coverage at which a pixel counts as object (0.5: the edge position
             at the frame time for a centred exposure).
         alpha_smoothing: Gaussian sigma (pixels) applied to the coverage before thresholding.
+        chroma_weight: weight of the two colour-difference channels against luma when the
+            coverage is solved. Video codecs store colour at half resolution (4:2:0), so its
+            edges are blurred; 0.5 trusts full-resolution luma more without dropping colour.
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
@@ -72,7 +75,8 @@ class SegmentationSettings:
     method: str = "median"
     noise_sigmas: float = 6.0
     alpha_threshold: float = 0.5
-    alpha_smoothing: float = 0.7
+    alpha_smoothing: float = 1.0
+    chroma_weight: float = 0.5
     morph_radius: int = 1
     min_area: int = 6
     second_component_frac: float = 0.5
@@ -84,7 +88,7 @@ class SegmentationSettings:
             raise ValueError(
                 f'Invalid method "{self.method}". Must be one of {", ".join(BACKGROUND_METHODS)}'
             )
-        for name in ("noise_sigmas", "alpha_smoothing"):
+        for name in ("noise_sigmas", "alpha_smoothing", "chroma_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 < self.alpha_threshold < 1.0:
@@ -314,10 +318,19 @@ def _largest(mask: np.ndarray) -> np.ndarray:
     return labels == 1 + int(np.argmax(areas))
 
 
+def _luma_chroma(bgr: np.ndarray, chroma_weight: float) -> np.ndarray:
+    """(..., 3) BGR -> (..., 3) float32 [Y, w (B - Y), w (R - Y)]: linear, so the mixing model holds."""
+    bgr = bgr.astype(np.float32)
+    luma = 0.114 * bgr[..., 0] + 0.587 * bgr[..., 1] + 0.299 * bgr[..., 2]
+    return np.stack([luma, chroma_weight * (bgr[..., 0] - luma), chroma_weight * (bgr[..., 2] - luma)], -1)
+
+
 def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached."""
-    background = _estimate_background(frames, settings)
-    diff = frames.astype(np.float32) - background  # (T, H, W, 3)
+    background_bgr = _estimate_background(frames, settings)
+    background = _luma_chroma(background_bgr, settings.chroma_weight)
+    frames = _luma_chroma(frames, settings.chroma_weight)
+    diff = frames - background  # (T, H, W, 3)
     magnitude = np.sqrt((diff**2).sum(-1))  # (T, H, W)
     centre = float(np.median(magnitude))
     noise = 1.4826 * float(np.median(np.abs(magnitude - centre)))
@@ -340,7 +353,7 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     if core.sum() < 10:
         core = seeds
     if not core.any():
-        return {"masks": seeds, "background": background, "second_frac": second_frac}
+        return {"masks": seeds, "background": background_bgr, "second_frac": second_frac}
     colours = frames[core].astype(np.float32)
     colours /= np.maximum(np.linalg.norm(colours, axis=1, keepdims=True), 1e-6)
     albedo = np.median(colours, axis=0)
@@ -368,7 +381,7 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     for t in range(len(frames)):
         if masks[t].any():
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
-    return {"masks": masks, "background": background, "second_frac": second_frac}
+    return {"masks": masks, "background": background_bgr, "second_frac": second_frac}
 
 
 # --------------------------------------------------------------------------------------

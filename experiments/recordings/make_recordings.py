@@ -38,6 +38,7 @@ import ast
 import dataclasses
 import json
 import math
+from fractions import Fraction
 import os
 import sys
 import time
@@ -100,7 +101,8 @@ class RecordingSpec:
     blur_subframes: int = 5  # renders averaged per frame (1 = no blur)
     exposure: float = 0.5  # exposure time as a fraction of the frame interval
     noise_sigma: float = 3.0 / 255.0  # Gaussian sensor noise, in [0, 1] units
-    codec: str = "mp4v"
+    codec: str = "h264"  # "h264" (libx264 through PyAV, yuv420p like a phone) or an OpenCV fourcc
+    crf: int = 14  # H.264 constant rate factor (lower = better; phones record at roughly 14-20)
     shadows: bool = False
     scene_seed: int = 0  # background texture
     # physics
@@ -555,6 +557,42 @@ def sample_ic(spec: RecordingSpec, scene: Scene, rng: np.random.Generator):
     return p, q, v, w
 
 
+class VideoWriter:
+    """Writes RGB uint8 frames: H.264 through PyAV (``codec="h264"``) or any OpenCV fourcc."""
+
+    def __init__(self, path: Path, spec: RecordingSpec, width: int, height: int):
+        self.container = self.stream = self.cv_writer = None
+        if spec.codec == "h264":
+            import av  # the `recordings` extra
+
+            self.container = av.open(str(path), "w")
+            self.stream = self.container.add_stream("libx264", rate=Fraction(spec.fps).limit_denominator(1001))
+            self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "yuv420p"
+            self.stream.options = {"crf": str(int(spec.crf)), "preset": "slow"}
+        else:
+            self.cv_writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*spec.codec),
+                                             float(spec.fps), (width, height))
+            if not self.cv_writer.isOpened():
+                raise RuntimeError(f"cv2.VideoWriter failed to open codec {spec.codec!r}")
+
+    def write(self, rgb: np.ndarray) -> None:
+        if self.cv_writer is not None:
+            self.cv_writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            return
+        import av
+
+        for packet in self.stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")):
+            self.container.mux(packet)
+
+    def release(self) -> None:
+        if self.cv_writer is not None:
+            self.cv_writer.release()
+            return
+        for packet in self.stream.encode():
+            self.container.mux(packet)
+        self.container.close()
+
+
 def sample_times(spec: RecordingSpec):
     """Frame times and, per frame, the blur sub-frame times (centred on the frame)."""
     tf = np.arange(spec.n_frames) / spec.fps
@@ -636,10 +674,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     rng = np.random.default_rng(10_000 + spec.seed)
     out = Path(out_dir) / spec.name
     out.mkdir(parents=True, exist_ok=True)
-    fourcc = cv2.VideoWriter_fourcc(*spec.codec)
-    writer = cv2.VideoWriter(str(out / "video.mp4"), fourcc, float(spec.fps), (W, H))
-    if not writer.isOpened():
-        raise RuntimeError("cv2.VideoWriter failed to open")
+    writer = VideoWriter(out / "video.mp4", spec, W, H)
 
     def set_qpos(qp):
         data.qpos[:] = qp
@@ -659,7 +694,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
                 acc += renderer.render()
             img = acc / K + rng.normal(scale=spec.noise_sigma * 255.0, size=acc.shape)
             img = np.clip(np.round(img), 0, 255).astype(np.uint8)
-            writer.write(cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+            writer.write(img)
             # true mask + pose at the frame time
             qp = qpos[idx[float(tf[i])]]
             set_qpos(qp)
@@ -725,7 +760,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             "blur_subframes": int(K),
             "exposure_frac": float(spec.exposure),
             "noise_sigma": float(spec.noise_sigma),
-            "codec": spec.codec,
+            "codec": spec.codec if spec.codec != "h264" else f"h264 (libx264, yuv420p, crf {spec.crf})",
             "engine": f"MuJoCo {mj.__version__} (physics RK4 dt={spec.timestep:g}, OpenGL render)",
             "fluid": bool(spec.fluid),
             "fluid_density": float(spec.fluid_density) if spec.fluid else 0.0,
