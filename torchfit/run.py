@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,11 +21,22 @@ from .camera import Camera
 from .dynamics import RigidBody
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
-from .search import Problem, SearchSettings, fit
+from .search import FitResult, Problem, SearchSettings, fit
 from .shape import PRIMITIVES, Shape, load_shape
 from .video import Observation, SegmentationSettings, contact_sheet, load_observation
 
-__all__ = ["run", "build_shape", "build_camera", "build_problem", "resolve_device"]
+__all__ = [
+    "TASKS",
+    "FittedRecording",
+    "build_camera",
+    "build_problem",
+    "build_shape",
+    "context",
+    "fit_recording",
+    "params",
+    "resolve_device",
+    "run",
+]
 
 log = logging.getLogger("torchfit")
 
@@ -157,22 +169,89 @@ def _search_settings(cfg: DictConfig) -> SearchSettings:
         raise ConfigError(f"search: {err}") from None
 
 
+@dataclass
+class FittedRecording:
+    """A recording, segmented and fitted: what an experiment builds on.
+
+    Attributes:
+        observation: the segmented recording.
+        problem: the fit's tensors (time 0 at ``span[0]``).
+        span: (T,) indices into the observation's frames that the fit covers.
+        result: the search's :class:`torchfit.search.FitResult`.
+        truth: the score against a truth file, or ``None``.
+        timing: seconds per stage.
+    """
+
+    observation: Observation
+    shape: Shape
+    camera: Camera
+    problem: Problem
+    span: np.ndarray
+    result: FitResult
+    truth: dict | None
+    timing: dict
+
+
+def fit_recording(video: str | Path, shape: Shape, camera: Camera, settings: SearchSettings, *,
+                  fps: float | None = None, g: float = 9.81, start: int = 0, stop: int | None = None,
+                  kind: str = "auto", truth: str | Path | None = None, cache_dir: Path | None = None,
+                  segmentation: SegmentationSettings | None = None, dtype: torch.dtype = torch.float32,
+                  device: torch.device | str = "cpu", progress=None) -> FittedRecording:
+    """Segment a recording and fit it from no guess (plain values in; no Hydra).
+
+    Raises:
+        ValueError: unreadable or unusable input, with a message that names it.
+    """
+    timing = {}
+    clock = time.perf_counter()
+    observation = load_observation(str(video), kind=kind, camera=camera, fps=fps, start=start, stop=stop,
+                                   cache_dir=cache_dir, settings=segmentation or SegmentationSettings())
+    timing["segmentation_s"] = time.perf_counter() - clock
+    if progress is not None:
+        progress(f"recording: {len(observation.masks)} frames at {observation.fps:g} fps, "
+                 f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
+    problem, span = build_problem(observation, shape, camera, g=g, dtype=dtype, device=torch.device(device))
+    clock = time.perf_counter()
+    result = fit(problem, settings, progress=progress)
+    timing["fit_s"] = time.perf_counter() - clock
+    score = score_against_truth(str(truth), result, problem, shape, span) if truth else None
+    return FittedRecording(observation, shape, camera, problem, span, result, score, timing)
+
+
 def run(cfg: DictConfig, out_dir: str | Path) -> dict:
-    """Fit the configured recording and write the outputs into ``out_dir``.
+    """Run the configured task (``cfg.task``) and write its outputs into ``out_dir``.
 
     Returns:
-        The ``result.json`` content.
+        The task's summary (for ``fit``: the ``result.json`` content).
     """
-    started = time.perf_counter()
+    if cfg.task not in TASKS:
+        raise ConfigError(f'task "{cfg.task}" is not available; must be one of {sorted(TASKS)}')
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    say = (lambda message: None) if cfg.quiet else (lambda message: log.info(message))
-    if cfg.task not in ("fit",):
-        raise ConfigError(f'task "{cfg.task}" is not available; must be one of ["fit"]')
+    return TASKS[cfg.task](cfg, out_dir)
+
+
+def context(cfg: DictConfig) -> dict:
+    """The settings every task shares, checked: device, dtype, progress, seed (and compile)."""
     device = resolve_device(str(cfg.device))
     if cfg.dtype not in ("float32", "float64"):
         raise ConfigError(f"dtype must be float32 or float64, got {cfg.dtype!r}")
-    dtype = getattr(torch, cfg.dtype)
+    compile_flag = cfg.render.compile
+    render.set_compile(device.type == "cuda" if compile_flag == "auto" else bool(compile_flag))
+    torch.manual_seed(int(cfg.seed))
+    say = (lambda message: None) if cfg.quiet else (lambda message: log.info(message))
+    return {"device": device, "dtype": getattr(torch, cfg.dtype), "progress": say, "seed": int(cfg.seed)}
+
+
+def params(cfg: DictConfig) -> dict:
+    """``cfg.params`` (an experiment's own settings) as plain Python values."""
+    return OmegaConf.to_container(cfg.params, resolve=True) if cfg.get("params") is not None else {}
+
+
+def run_fit(cfg: DictConfig, out_dir: Path) -> dict:
+    """``task: fit``: fit the configured recording; write result.json, plots, overlay video."""
+    started = time.perf_counter()
+    ctx = context(cfg)
     data = cfg.data
     if not data.video:
         raise ConfigError("data.video: give the recording (a video file, image folder or masks folder)")
@@ -180,31 +259,26 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
         raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
     if float(cfg.dynamics.g) <= 0:
         raise ConfigError(f"dynamics.g must be positive m/s^2, got {cfg.dynamics.g}")
-    compile_flag = cfg.render.compile
-    render.set_compile(device.type == "cuda" if compile_flag == "auto" else bool(compile_flag))
-    torch.manual_seed(int(cfg.seed))
-
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
-    timing = {}
-    clock = time.perf_counter()
-    observation = load_observation(
-        str(data.video), kind=str(data.kind), camera=camera, fps=data.fps, start=int(data.start),
-        stop=data.stop, cache_dir=(out_dir / "cache") if data.cache else None,
-        settings=SegmentationSettings(method=str(data.segmentation.method)))
-    timing["segmentation_s"] = time.perf_counter() - clock
+    fitted = fit_recording(
+        str(data.video), shape, camera, _search_settings(cfg.search), fps=data.fps, g=float(cfg.dynamics.g),
+        start=int(data.start), stop=data.stop, kind=str(data.kind), truth=data.truth,
+        cache_dir=(out_dir / "cache") if data.cache else None,
+        segmentation=SegmentationSettings(method=str(data.segmentation.method)),
+        dtype=ctx["dtype"], device=ctx["device"], progress=ctx["progress"])
     if cfg.outputs.plots:  # a glance at whether segmentation worked
-        contact_sheet(observation, None, out_dir / "contact_sheet.png")
-    say(f"recording: {len(observation.masks)} frames at {observation.fps:g} fps, "
-        f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
-    problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=dtype, device=device)
-
-    clock = time.perf_counter()
-    result = fit(problem, _search_settings(cfg.search), progress=say)
-    timing["fit_s"] = time.perf_counter() - clock
-    truth = score_against_truth(str(data.truth), result, problem, shape, span) if data.truth else None
-    timing["total_s"] = time.perf_counter() - started
-    content = write_outputs(out_dir, result, problem, observation, shape, camera, span, timing, truth,
+        contact_sheet(fitted.observation, None, out_dir / "contact_sheet.png")
+    timing = fitted.timing | {"total_s": time.perf_counter() - started}
+    content = write_outputs(out_dir, fitted.result, fitted.problem, fitted.observation, shape, camera,
+                            fitted.span, timing, fitted.truth,
                             overlay=bool(cfg.outputs.overlay_video), plots=bool(cfg.outputs.plots))
     print(summary_text(content, out_dir))
     return content
+
+
+# Task name (config key ``task``) -> function(cfg, out_dir) -> summary dict. Experiments add
+# themselves here; each writes its figures and a summary.json into out_dir.
+TASKS = {
+    "fit": run_fit,
+}
