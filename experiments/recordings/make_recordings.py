@@ -110,11 +110,107 @@ class RecordingSpec:
     fluid: bool = False  # MuJoCo's ellipsoid fluid model (off = vacuum)
     fluid_density: float = 1.204  # kg/m^3 (air)
     fluid_viscosity: float = 1.81e-5  # Pa s (air)
+    # --- hidden effects (issue 6); the defaults reproduce the recordings made before them ---
+    ball_radius: float = 0.033  # m, shape "sphere" (an icosphere, the same in mesh.obj and MuJoCo)
+    # MuJoCo ellipsoid-model coefficients (blunt drag, slender drag, angular drag, Kutta lift,
+    # Magnus lift); None = MuJoCo's defaults (0.5, 0.25, 1.5, 1.0, 1.0)
+    fluidcoef: Optional[Sequence[float]] = None
+    # put the fluid forces on an invisible, massless sphere at the centre of mass whose
+    # cross-section is the mesh's reference area (hull area / 4), instead of on the visible
+    # geoms: aerodynamics that are exactly torchfit's isotropic quadratic_drag + magnus
+    fluid_sphere: bool = False
+    # a hidden dense block inside the object: (centre (3,) in mesh coordinates, half sizes (3,),
+    # mass kg); mesh.obj stays the visible uniform shape, the simulated body is heavier off-centre
+    hidden_weight: Optional[tuple] = None
+    fps_stated: Optional[float] = None  # frame rate written in the video container (None = fps)
+    distortion: Optional[Sequence[float]] = None  # (k1, k2) radial, left out of camera.json
+    # where drawn throws start / end horizontally, fractions of the width
+    u_start: tuple = (0.2, 0.3)
+    u_end: tuple = (0.7, 0.8)
+    write_effects: bool = False  # write truth["effects"] (the hidden effects; {} = none)
     # checks
     min_iou: float = 0.95
 
     def replace(self, **kw) -> "RecordingSpec":
         return dataclasses.replace(self, **kw)
+
+
+_HIDDEN_FIELDS = ("ball_radius", "fluidcoef", "fluid_sphere", "hidden_weight", "fps_stated",
+                  "distortion", "u_start", "u_end", "write_effects")
+_SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RecordingSpec)}
+MJ_FLUIDCOEF = (0.5, 0.25, 1.5, 1.0, 1.0)  # MuJoCo's defaults: blunt, slender, angular, Kutta, Magnus
+AIR_DENSITY = 1.2  # kg/m^3, torchfit.effects.AIR_DENSITY: the density the effects assume
+
+
+def fluid_truth(spec: RecordingSpec, scene, mesh: trimesh.Trimesh) -> dict:
+    """MuJoCo's ellipsoid-model forces on the fluid sphere, in torchfit's effect conventions.
+
+    For a sphere of radius r (A = pi r^2 = the mesh's reference area, V = 4/3 pi r^3) MuJoCo
+    (engine_passive.c, mj_viscousForces + mj_addedMassForces, ``docs: computation/fluid``) applies
+    at the centre of mass, with v, w the body's velocity and angular velocity::
+
+        F = -rho C_blunt A |v| v            (A_proj = A_max = pi r^2, the slender term vanishes)
+            + rho (C_M V - m_A) (w x v)     (Magnus, plus the added-mass term (m_A v) x w; the
+                                             -m_A dv/dt part is left out by MuJoCo; m_A = V/2)
+            - 6 pi r beta v                 (Stokes)
+        tau = -rho C_ang (8 pi / 15) r^5 |w| w - 8 pi r^3 beta w
+
+    torchfit: quadratic_drag F = -1/2 rho C_d A |v| v, magnus F = 1/2 rho C_L A r (w x v), so
+    C_d = 2 C_blunt and C_L = 2 (C_M V - m_A) / (A r), both for rho = AIR_DENSITY (1.2).
+    """
+    g = next(g for g in range(scene.model.ngeom) if scene.model.geom_bodyid[g] == scene.body
+             and scene.model.geom_group[g] >= 3 and scene.model.geom_type[g] == 2)  # mjGEOM_SPHERE
+    r = float(scene.model.geom_size[g, 0])
+    fl = np.asarray(scene.model.geom_fluid[g], float)  # interaction, 5 coefficients, m_A (3), I_A (3)
+    blunt, slender, angular, kutta, magnus = (float(c) for c in fl[1:6])
+    area, volume, m_added = math.pi * r * r, 4.0 / 3.0 * math.pi * r ** 3, float(fl[6])
+    rho, beta = float(spec.fluid_density), float(spec.fluid_viscosity)
+    scale = rho / AIR_DENSITY
+    return {
+        "model": "MuJoCo ellipsoid fluid model on an invisible massless sphere at the centre of mass",
+        "sphere_radius_m": r, "reference_area_m2": area, "volume_m3": volume,
+        "fluid_density": rho, "fluid_viscosity": beta,
+        "fluidcoef": {"blunt_drag": blunt, "slender_drag": slender, "angular_drag": angular,
+                      "kutta_lift": kutta, "magnus_lift": magnus},
+        "added_mass_volume_m3": m_added,
+        "drag_coefficient": 2.0 * blunt * scale,
+        "lift_coefficient": 2.0 * (magnus * volume - m_added) / (area * r) * scale,
+        "linear_damping_kg_s": 6.0 * math.pi * r * beta,
+        "spin_damping_linear_N_m_s": 8.0 * math.pi * r ** 3 * beta,
+        "spin_damping_quadratic_N_m_s2": rho * angular * 8.0 * math.pi / 15.0 * r ** 5,
+        "torchfit_air_density": AIR_DENSITY,
+    }
+
+
+def hidden_effects(spec: RecordingSpec, scene, mesh: trimesh.Trimesh) -> dict:
+    """{vocabulary name: {parameter: value}} of what the recording hides ({} = nothing).
+
+    Parameter names are torchfit's (``torchfit.effects.EFFECTS[name].null_params``), so
+    ``make_effect(name, area=shape.reference_area, **params)`` rebuilds each one.
+    """
+    out = {}
+    if spec.fluid:
+        if not spec.fluid_sphere:
+            raise ValueError(f"{spec.name}: effects truth needs fluid_sphere=True (the ellipsoid "
+                             "model on the visible geoms has no exact torchfit counterpart)")
+        fl = fluid_truth(spec, scene, mesh)
+        if fl["drag_coefficient"] != 0.0:
+            out["quadratic_drag"] = {"drag_coefficient": fl["drag_coefficient"]}
+        if abs(fl["lift_coefficient"]) > 1e-3:  # C_M = 1/2 cancels the added-mass lift (to ~1e-6)
+            out["magnus"] = {"lift_coefficient": fl["lift_coefficient"]}
+        if fl["linear_damping_kg_s"] > 0:
+            out["linear_drag"] = {"damping": fl["linear_damping_kg_s"]}
+        if fl["spin_damping_linear_N_m_s"] > 0 or fl["spin_damping_quadratic_N_m_s2"] > 0:
+            raise ValueError(f"{spec.name}: spin damping (viscosity or angular drag) has no exact "
+                             "torchfit counterpart here; set fluid_viscosity=0 and fluidcoef[2]=0")
+    if spec.hidden_weight is not None:
+        nominal = Scene(spec.replace(hidden_weight=None), mesh)
+        out["com_offset"] = {"offset": _lst(scene.com - nominal.com, 12)}
+    if spec.fps_stated is not None:
+        out["time_scale"] = {"time_scale": float(spec.fps) / float(spec.fps_stated)}
+    if spec.distortion is not None:
+        out["lens_distortion"] = {"k1": float(spec.distortion[0]), "k2": float(spec.distortion[1])}
+    return out
 
 
 def shipped_specs() -> list[RecordingSpec]:
@@ -144,8 +240,10 @@ def shipped_specs() -> list[RecordingSpec]:
 # --------------------------------------------------------------------------------------
 
 
-def make_mesh(shape: str) -> trimesh.Trimesh:
+def make_mesh(shape: str, ball_radius: float = 0.033) -> trimesh.Trimesh:
     """The object's mesh, in its own (mesh.obj) coordinates, metres."""
+    if shape == "sphere":
+        return trimesh.creation.icosphere(subdivisions=3, radius=float(ball_radius))
     if shape == "tshape":
         bar = trimesh.creation.box(extents=(0.20, 0.03, 0.03))
         stem = trimesh.creation.box(extents=(0.03, 0.15, 0.03))
@@ -207,15 +305,39 @@ def random_quat(rng: np.random.Generator) -> np.ndarray:
     return q if q[0] >= 0 else -q
 
 
-def project(points_cam: np.ndarray, cam: dict) -> np.ndarray:
-    """(N,3) camera-frame points -> (N,2) pixel coordinates (OpenCV convention)."""
+def distort_normalised(xy: np.ndarray, distortion) -> np.ndarray:
+    """(N,2) normalised coordinates -> distorted, x_d = x (1 + k1 r^2 + k2 r^4)."""
+    k1, k2 = (float(k) for k in distortion)
+    r2 = (xy * xy).sum(-1, keepdims=True)
+    return xy * (1.0 + k1 * r2 + k2 * r2 * r2)
+
+
+def undistort_normalised(xy_d: np.ndarray, distortion, iterations: int = 50) -> np.ndarray:
+    """Inverse of :func:`distort_normalised` (fixed-point iteration; exact to ~1e-12 here)."""
+    xy = xy_d.copy()
+    k1, k2 = (float(k) for k in distortion)
+    for _ in range(iterations):
+        r2 = (xy * xy).sum(-1, keepdims=True)
+        xy = xy_d / (1.0 + k1 * r2 + k2 * r2 * r2)
+    return xy
+
+
+def project(points_cam: np.ndarray, cam: dict, distortion=None) -> np.ndarray:
+    """(N,3) camera-frame points -> (N,2) pixel coordinates (OpenCV convention).
+
+    ``distortion`` (k1, k2): radial distortion applied to the normalised coordinates.
+    """
     z = points_cam[:, 2]
+    if distortion is not None:
+        xy = distort_normalised(points_cam[:, :2] / z[:, None], distortion)
+        return np.stack([cam["fx"] * xy[:, 0] + cam["cx"], cam["fy"] * xy[:, 1] + cam["cy"]], axis=1)
     return np.stack([cam["fx"] * points_cam[:, 0] / z + cam["cx"],
                      cam["fy"] * points_cam[:, 1] / z + cam["cy"]], axis=1)
 
 
 def render_silhouette(vertices: np.ndarray, faces: np.ndarray, R: np.ndarray,
-                      t: np.ndarray, cam: dict, supersample: int = 31) -> np.ndarray:
+                      t: np.ndarray, cam: dict, supersample: int = 31,
+                      distortion=None) -> np.ndarray:
     """Binary silhouette of a mesh at pose (R, t): numpy projection + cv2.fillConvexPoly.
 
     A pixel is "in" when its centre is inside the projected mesh (OpenGL's
@@ -229,7 +351,7 @@ def render_silhouette(vertices: np.ndarray, faces: np.ndarray, R: np.ndarray,
     pc = vertices @ np.asarray(R).T + np.asarray(t)
     if np.any(pc[:, 2] <= 1e-6):
         raise ValueError("mesh behind the camera")
-    uv = project(pc, cam)
+    uv = project(pc, cam, distortion)
     out = np.zeros((H, W), bool)
     x0, y0 = max(int(np.floor(uv[:, 0].min())) - 1, 0), max(int(np.floor(uv[:, 1].min())) - 1, 0)
     x1, y1 = min(int(np.ceil(uv[:, 0].max())) + 1, W - 1), min(int(np.ceil(uv[:, 1].max())) + 1, H - 1)
@@ -251,11 +373,19 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / u) if u else 1.0
 
 
-def check_ground_truth(mesh: trimesh.Trimesh, cam: dict, Rs, ts, masks) -> np.ndarray:
-    """IoU per frame between the projected mesh at the true poses and the true masks."""
-    V = np.asarray(mesh.vertices, float)
-    F = np.asarray(mesh.faces)
-    return np.array([mask_iou(render_silhouette(V, F, R, t, cam), m)
+def check_ground_truth(mesh: trimesh.Trimesh, cam: dict, Rs, ts, masks,
+                       distortion=None) -> np.ndarray:
+    """IoU per frame between the projected mesh at the true poses and the true masks.
+
+    With ``distortion`` the mesh is first cut into <= 5 mm triangles (straight edges bend).
+    """
+    if distortion is not None:
+        V, F = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, 0.005)
+    else:
+        V, F = mesh.vertices, mesh.faces
+    V = np.asarray(V, float)
+    F = np.asarray(F)
+    return np.array([mask_iou(render_silhouette(V, F, R, t, cam, distortion=distortion), m)
                      for R, t, m in zip(Rs, ts, masks)])
 
 
@@ -327,6 +457,52 @@ def _v(a) -> str:
     return " ".join(f"{float(x):.10g}" for x in a)
 
 
+def fluid_sphere_radius(mesh: trimesh.Trimesh) -> float:
+    """Radius whose disc has the mesh's reference area (convex hull area / 4, as torchfit)."""
+    return math.sqrt(float(mesh.convex_hull.area) / 4.0 / math.pi)
+
+
+def true_com(spec: RecordingSpec, mesh: trimesh.Trimesh) -> np.ndarray:
+    """Centre of mass of the simulated body (uniform mesh plus any hidden weight), mesh frame."""
+    m = mesh.copy()
+    m.density = float(spec.density)
+    if spec.hidden_weight is None:
+        return np.asarray(m.center_mass, float)
+    centre, _, mw = spec.hidden_weight
+    return (m.mass * np.asarray(m.center_mass) + float(mw) * np.asarray(centre, float)) / (m.mass + float(mw))
+
+
+def render_geometry(spec: RecordingSpec):
+    """(width, height, fovy_deg) of MuJoCo's render: the output's own without distortion; with
+    it, a larger canvas of the same focal length that covers the undistorted field of view."""
+    if spec.distortion is None:
+        return spec.width, spec.height, spec.fovy_deg
+    cam = camera_intrinsics(spec.width, spec.height, spec.fovy_deg)
+    W, H, f = spec.width, spec.height, cam["fy"]
+    u = np.arange(W, dtype=float)
+    v = np.arange(H, dtype=float)
+    border = np.concatenate([np.stack([u, np.zeros(W)], 1), np.stack([u, np.full(W, H - 1.0)], 1),
+                             np.stack([np.zeros(H), v], 1), np.stack([np.full(H, W - 1.0), v], 1)])
+    xy = undistort_normalised((border - [cam["cx"], cam["cy"]]) / f, spec.distortion)
+    pad_x = max(0, math.ceil(np.abs(xy[:, 0]).max() * f - (W - 1) / 2.0) + 3)
+    pad_y = max(0, math.ceil(np.abs(xy[:, 1]).max() * f - (H - 1) / 2.0) + 3)
+    Wr, Hr = W + 2 * pad_x, H + 2 * pad_y
+    return Wr, Hr, math.degrees(2.0 * math.atan((Hr / 2.0) / f))
+
+
+def distortion_maps(spec: RecordingSpec):
+    """cv2.remap maps (H, W) float32: output (distorted) pixel -> pixel of the wide render."""
+    cam = camera_intrinsics(spec.width, spec.height, spec.fovy_deg)
+    Wr, Hr, _ = render_geometry(spec)
+    f = cam["fy"]
+    vv, uu = np.mgrid[0:spec.height, 0:spec.width].astype(float)
+    xy_d = np.stack([(uu - cam["cx"]) / f, (vv - cam["cy"]) / f], -1).reshape(-1, 2)
+    xy = undistort_normalised(xy_d, spec.distortion).reshape(spec.height, spec.width, 2)
+    map_x = (f * xy[..., 0] + (Wr - 1) / 2.0).astype(np.float32)
+    map_y = (f * xy[..., 1] + (Hr - 1) / 2.0).astype(np.float32)
+    return map_x, map_y
+
+
 def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray):
     """MJCF text and assets. The object body frame = mesh.obj frame."""
     R_wc = R_cw.T
@@ -346,18 +522,30 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
     elif spec.shape == "box":
         geoms = '<geom name="obj0" type="box" size="0.06 0.04 0.025" material="obj"/>'
         mesh_asset = ""
-    elif spec.shape == "cylinder":
-        # the very same 32-gon prism as mesh.obj: exact (polyhedral) inertia and silhouette
+    elif spec.shape in ("cylinder", "sphere"):
+        # the very same 32-gon prism (icosphere) as mesh.obj: exact (polyhedral) inertia and
+        # silhouette
         geoms = '<geom name="obj0" type="mesh" mesh="objmesh" material="obj"/>'
         mesh_asset = (f'<mesh name="objmesh" inertia="exact" vertex="{_v(mesh.vertices.ravel())}" '
                       f'face="{" ".join(str(int(i)) for i in mesh.faces.ravel())}"/>')
     else:
         raise ValueError(spec.shape)
+    coef = f' fluidcoef="{_v(spec.fluidcoef)}"' if spec.fluidcoef is not None else ""
+    if spec.fluid and spec.fluid_sphere:
+        # invisible (group 3, transparent), massless: only the fluid forces come from it
+        geoms += (f'<geom name="fluid" type="sphere" size="{fluid_sphere_radius(mesh):.10g}" '
+                  f'pos="{_v(true_com(spec, mesh))}" density="0" group="3" rgba="0 0 0 0" '
+                  f'fluidshape="ellipsoid"{coef}/>')
+    elif spec.fluid:
+        geoms = geoms.replace('material="obj"', f'material="obj" fluidshape="ellipsoid"{coef}')
     if spec.fluid:
-        geoms = geoms.replace('material="obj"', 'material="obj" fluidshape="ellipsoid"')
         opt_fluid = f'density="{spec.fluid_density}" viscosity="{spec.fluid_viscosity}"'
     else:
         opt_fluid = 'density="0" viscosity="0"'
+    if spec.hidden_weight is not None:
+        centre, half, mass = spec.hidden_weight
+        geoms += (f'<geom name="weight" type="box" size="{_v(half)}" pos="{_v(centre)}" '
+                  f'mass="{float(mass):.10g}" group="3" rgba="0 0 0 0"/>')
 
     wall_c = p_cam + WALL_DIST * fwd
     wall_c[2] = 4.0
@@ -367,7 +555,7 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
     cab2_c[2] = 0.45
     light_dir = -(fwd * 0.5 + left * 0.3 + np.array([0, 0, 1.0]))
     shadow = "true" if spec.shadows else "false"
-    W, H = spec.width, spec.height
+    W, H, fovy = render_geometry(spec)
     xml = f"""
 <mujoco model="throw_{spec.name}">
   <compiler angle="radian" alignfree="false"/>
@@ -400,7 +588,7 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
     <light name="fill" directional="true" dir="{_v(-fwd + np.array([0, 0, -0.5]))}"
            diffuse="0.2 0.2 0.22" specular="0 0 0" castshadow="false"/>
     <camera name="cam" mode="fixed" pos="{_v(p_cam)}" xyaxes="{_v(cam_x)} {_v(cam_y)}"
-            fovy="{spec.fovy_deg:.10g}"/>
+            fovy="{fovy:.10g}"/>
     <geom name="floor" type="box" size="12 12 0.05" pos="{_v(p_cam[:2])} -0.05"
           material="floor" density="0"/>
     <geom name="wall" type="box" size="12 4 0.05" pos="{_v(wall_c)}"
@@ -435,8 +623,9 @@ class Scene:
         self.model = mujoco.MjModel.from_xml_string(xml, assets)
         self.data = mujoco.MjData(self.model)
         self.body = self.model.body("object").id
-        self.obj_geoms = np.array([g for g in range(self.model.ngeom)
-                                   if self.model.geom_bodyid[g] == self.body])
+        self.obj_geoms = np.array([g for g in range(self.model.ngeom)  # visible ones only
+                                   if self.model.geom_bodyid[g] == self.body
+                                   and self.model.geom_group[g] < 3])
         self.cam = camera_intrinsics(spec.width, spec.height, spec.fovy_deg)
         m, b = self.model, self.body
         self.mass = float(m.body_mass[b])
@@ -539,7 +728,7 @@ def sample_ic(spec: RecordingSpec, scene: Scene, rng: np.random.Generator):
     else:
         z0 = rng.uniform(*spec.depth_range)
         z1 = z0 + rng.uniform(-0.3, 0.3)
-        u0, u1 = W * rng.uniform(0.2, 0.3), W * rng.uniform(0.7, 0.8)
+        u0, u1 = W * rng.uniform(*spec.u_start), W * rng.uniform(*spec.u_end)
         if rng.random() < 0.5:
             u0, u1 = W - 1 - u0, W - 1 - u1
         v0, v1 = H * rng.uniform(0.6, 0.74), H * rng.uniform(0.55, 0.74)
@@ -566,12 +755,14 @@ class VideoWriter:
             import av  # the `recordings` extra
 
             self.container = av.open(str(path), "w")
-            self.stream = self.container.add_stream("libx264", rate=Fraction(spec.fps).limit_denominator(1001))
+            fps = spec.fps if spec.fps_stated is None else spec.fps_stated  # what the file says
+            self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
             self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "yuv420p"
             self.stream.options = {"crf": str(int(spec.crf)), "preset": "slow"}
         else:
             self.cv_writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*spec.codec),
-                                             float(spec.fps), (width, height))
+                                             float(spec.fps if spec.fps_stated is None
+                                                   else spec.fps_stated), (width, height))
             if not self.cv_writer.isOpened():
                 raise RuntimeError(f"cv2.VideoWriter failed to open codec {spec.codec!r}")
 
@@ -612,7 +803,7 @@ def in_view(scene: Scene, mesh: trimesh.Trimesh, qpos_all, margin: int):
         pc = V @ R.T + t
         if pc[:, 2].min() < 0.3 or pc[:, 2].max() > 3.5:
             return False
-        uv = project(pc, cam)
+        uv = project(pc, cam, scene.spec.distortion)
         if (uv[:, 0].min() < margin or uv[:, 1].min() < margin
                 or uv[:, 0].max() > cam["width"] - 1 - margin
                 or uv[:, 1].max() > cam["height"] - 1 - margin):
@@ -653,7 +844,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     Returns a summary dict (paths, IoU figures). Raises if the ground-truth check fails.
     """
     t_start = time.time()
-    mesh = make_mesh(spec.shape)
+    mesh = make_mesh(spec.shape, spec.ball_radius)
     scene = Scene(spec, mesh)
     mj, model, data = scene.mj, scene.model, scene.data
     cam = scene.cam
@@ -670,7 +861,9 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     p0, R0, v0, w0 = scene.state_cam()
 
     H, W = spec.height, spec.width
-    renderer = mj.Renderer(model, H, W)
+    Wr, Hr, _ = render_geometry(spec)
+    maps = distortion_maps(spec) if spec.distortion is not None else None
+    renderer = mj.Renderer(model, Hr, Wr)
     rng = np.random.default_rng(10_000 + spec.seed)
     out = Path(out_dir) / spec.name
     out.mkdir(parents=True, exist_ok=True)
@@ -686,12 +879,15 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     try:
         for i in range(spec.n_frames):
             # blurred, noisy colour frame
-            acc = np.zeros((H, W, 3), np.float64)
+            acc = np.zeros((Hr, Wr, 3), np.float64)
             renderer.disable_segmentation_rendering()
             for k in range(K):
                 set_qpos(qpos[idx[float(ts[i, k])]])
                 renderer.update_scene(data, camera="cam")
                 acc += renderer.render()
+            if maps is not None:  # through the lens: the wide pinhole render, distorted
+                acc = cv2.remap(acc.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
             img = acc / K + rng.normal(scale=spec.noise_sigma * 255.0, size=acc.shape)
             img = np.clip(np.round(img), 0, 255).astype(np.uint8)
             writer.write(img)
@@ -701,6 +897,9 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             renderer.enable_segmentation_rendering()
             renderer.update_scene(data, camera="cam")
             seg = renderer.render()
+            if maps is not None:
+                seg = np.round(cv2.remap(seg.astype(np.float32), maps[0], maps[1],
+                                         cv2.INTER_NEAREST)).astype(np.int64)
             masks[i] = (seg[..., 1] == MJ_OBJ_GEOM) & np.isin(seg[..., 0], scene.obj_geoms)
             R, t = scene.pose_cam(qp)
             Rs.append(R)
@@ -712,7 +911,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     # --- independent check: projected mesh.obj vs MuJoCo's segmentation ---
     mesh.export(out / "mesh.obj")
     mesh_back = trimesh.load(out / "mesh.obj", force="mesh", process=False)
-    ious = check_ground_truth(mesh_back, cam, Rs, tvecs, masks)
+    ious = check_ground_truth(mesh_back, cam, Rs, tvecs, masks, spec.distortion)
     ok = bool(ious.min() >= spec.min_iou)
     if not all(m.any() for m in masks):
         ok = False
@@ -768,8 +967,32 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
         },
         "check": {"iou_min": float(ious.min()), "iou_median": float(np.median(ious))},
         "spec": {k: (list(v) if isinstance(v, tuple) else v)
-                 for k, v in dataclasses.asdict(spec).items()},
+                 for k, v in dataclasses.asdict(spec).items()
+                 if not (k in _HIDDEN_FIELDS and v == _SPEC_DEFAULTS[k])},
     }
+    # hidden effects: keys only written when used, so older recordings regenerate unchanged
+    if spec.hidden_weight is not None:  # "object" = what mesh.obj at the density gives
+        nominal = Scene(spec.replace(hidden_weight=None), mesh)
+        truth["object"].update(mass=float(nominal.mass), com=_lst(nominal.com, 12),
+                               inertia=_lst(nominal.inertia, 15))
+        truth["hidden_weight"] = {
+            "centre": _lst(spec.hidden_weight[0], 12), "half_size": _lst(spec.hidden_weight[1], 12),
+            "mass": float(spec.hidden_weight[2]),
+            "body_mass": float(scene.mass), "body_com": _lst(scene.com, 12),
+            "body_inertia": _lst(scene.inertia, 15),
+            "principal_moment_ratio": _lst(np.linalg.eigvalsh(scene.inertia)
+                                           / np.linalg.eigvalsh(nominal.inertia), 9),
+        }
+    if spec.fps_stated is not None:
+        truth.update(fps_true=float(spec.fps), fps_stated=float(spec.fps_stated))
+    if spec.distortion is not None:
+        truth["camera_true"] = dict(cam, dist_coeffs=[float(spec.distortion[0]),
+                                                      float(spec.distortion[1]), 0.0, 0.0, 0.0])
+        truth["render"]["canvas"] = list(render_geometry(spec))
+    if spec.fluid and spec.fluid_sphere:
+        truth["fluid_model"] = fluid_truth(spec, scene, mesh)
+    if spec.write_effects:
+        truth["effects"] = hidden_effects(spec, scene, mesh)
     with open(out / "camera.json", "w") as f:
         json.dump(cam, f, indent=1)
     with open(out / "truth.json", "w") as f:

@@ -1,0 +1,219 @@
+#!/usr/bin/env python
+"""The concealed set: MuJoCo recordings that each hide one effect (or none) from the baseline model.
+
+Issue 6 ("Missing physics") asks for test recordings from the independent engine where an effect
+is real but concealed: the baseline (vacuum, uniform density, stated fps, pinhole camera) fit
+alone should still look good, while the effect leaves a residual. Each recording's
+``truth.json`` holds the ground truth of the usual recordings plus ``effects``:
+``{vocabulary name: {torchfit parameter: value}}`` (``{}`` for the controls), with parameter names
+as in ``torchfit.effects.EFFECTS`` so ``make_effect(name, area=shape.reference_area, **params)``
+rebuilds each. See CONCEALED.md for what each recording hides and how big it is.
+
+Make them all (from the repository root, ~2 minutes on one core)::
+
+    MUJOCO_GL=osmesa python experiments/discover/make_concealed.py
+
+Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), ``--only a,b``,
+``--list``, ``--markdown`` (print the table as Markdown, as in CONCEALED.md).
+
+The "effect size" column is measured, not assumed: the same throw (same initial state) is
+simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
+lens) and the two silhouettes' centroids are compared, in pixels, at the last frame and at worst.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "recordings"))
+import make_recordings as mr
+
+DEFAULT_OUT = HERE / "recordings"
+
+# Aerodynamics: MuJoCo's ellipsoid fluid model on an invisible massless sphere of the shape's
+# reference area at the centre of mass (exactly torchfit's quadratic_drag + magnus, see
+# make_recordings.fluid_truth). Viscosity and angular drag off (no exact torchfit counterpart,
+# and the Stokes terms are ~1e-3 of the quadratic drag anyway); air density = torchfit's 1.2.
+# C_M = 1/2 cancels MuJoCo's added-mass lift on a sphere, so "drag" recordings have no lift;
+# "magnus" recordings have no drag (blunt = 0), so every recording hides exactly one effect.
+AIR = {"fluid": True, "fluid_sphere": True, "fluid_density": 1.2, "fluid_viscosity": 0.0}
+
+
+def drag(blunt: float) -> dict:
+    """C_d = 2 * blunt (torchfit convention), no lift."""
+    return {**AIR, "fluidcoef": (blunt, 0.25, 0.0, 1.0, 0.5)}
+
+
+def lift(magnus: float) -> dict:
+    """C_L = 8/3 (C_M - 1/2) per unit spin ratio (torchfit convention), no drag."""
+    return {**AIR, "fluidcoef": (0.0, 0.0, 0.0, 1.0, magnus)}
+
+
+def concealed_specs() -> list[tuple[mr.RecordingSpec, str]]:
+    """(spec, what it hides) for every recording of the concealed set."""
+    S = mr.RecordingSpec
+    base = {"write_effects": True, "n_frames": 45, "fps": 60.0}
+    tennis = {"shape": "sphere", "ball_radius": 0.033, "density": 380.0}  # 57 g, a tennis ball
+    foam = {"shape": "sphere", "ball_radius": 0.035, "density": 150.0}  # 27 g foam ball
+    return [
+        # ---- quadratic drag ----
+        (S(name="drag_ball", **tennis, **drag(0.25), spin_rate=0.0, tilt_deg=8.0, roll_deg=3.0,
+           seed=101, **base), "quadratic drag, tennis ball (C_d 0.5)"),
+        (S(name="drag_foam_ball", **foam, **drag(0.25), spin_rate=0.0, tilt_deg=5.0,
+           roll_deg=-4.0, depth_range=(1.3, 1.6), seed=102, **base),
+         "quadratic drag, light foam ball (C_d 0.5)"),
+        (S(name="drag_tshape", shape="tshape", **drag(0.4), spin_rate=8.0, spin_axis="major",
+           spin_wobble=0.3, tilt_deg=10.0, roll_deg=5.0, seed=103, **base),
+         "quadratic drag, T-handle (C_d 0.8)"),
+        # ---- Magnus lift (visible spin: bodies whose rotation the silhouette shows) ----
+        (S(name="magnus_tshape", shape="tshape", **lift(1.0), spin_rate=16.0, spin_axis="major",
+           spin_wobble=0.15, tilt_deg=9.0, roll_deg=-3.0, seed=111, **base),
+         "Magnus lift, T-handle spinning about its major axis"),
+        (S(name="magnus_cylinder", shape="cylinder", **lift(1.0), spin_rate=15.0,
+           spin_axis="major", spin_wobble=0.2, tilt_deg=7.0, roll_deg=4.0, seed=112, **base),
+         "Magnus lift, cylinder tumbling end over end"),
+        # ---- centre of mass moved by a hidden dense block ----
+        (S(name="com_tshape", shape="tshape", hidden_weight=((0.05, 0.0, 0.0), (0.008,) * 3, 0.036),
+           spin_rate=10.0, spin_axis="major", spin_wobble=0.3, tilt_deg=10.0, roll_deg=-5.0,
+           seed=121, **base), "centre of mass: 36 g block inside one crossbar arm"),
+        (S(name="com_cylinder", shape="cylinder",
+           hidden_weight=((0.0, 0.0, 0.07), (0.01,) * 3, 0.066), spin_rate=10.0,
+           spin_axis="major", spin_wobble=0.25, tilt_deg=6.0, roll_deg=6.0,
+           depth_range=(1.4, 1.7), seed=122, **base),
+         "centre of mass: 66 g block near one end"),
+        # ---- wrong frame rate: container fps != true fps ----
+        (S(name="time_tshape", shape="tshape", fps_stated=58.5, spin_rate=10.0, spin_axis="major",
+           spin_wobble=0.3, tilt_deg=10.0, roll_deg=2.0, seed=131,
+           **{**base, "fps": 60.0}), "clock: 60 fps stated as 58.5"),
+        (S(name="time_box", shape="box", fps_stated=60.0, spin_rate=12.0, spin_axis="random",
+           tilt_deg=12.0, roll_deg=-3.0, seed=132, **{**base, "fps": 58.5}),
+         "clock: 58.5 fps stated as 60"),
+        # ---- lens distortion missing from camera.json; throws across the whole width ----
+        (S(name="lens_tshape", shape="tshape", distortion=(-0.15, 0.02), u_start=(0.07, 0.1),
+           u_end=(0.9, 0.93), spin_rate=9.0, spin_axis="major", spin_wobble=0.3, tilt_deg=8.0,
+           roll_deg=4.0, depth_range=(1.3, 1.5), seed=141, **base),
+         "barrel distortion k1 -0.15, k2 0.02"),
+        (S(name="lens_box", shape="box", distortion=(-0.2, 0.04), u_start=(0.07, 0.1),
+           u_end=(0.9, 0.93), spin_rate=10.0, spin_axis="random", tilt_deg=10.0, roll_deg=-6.0,
+           depth_range=(1.3, 1.5), seed=142, **base),
+         "barrel distortion k1 -0.2, k2 0.04"),
+        # ---- controls: nothing missing ----
+        (S(name="control_tshape", shape="tshape", spin_rate=10.0, spin_axis="major",
+           spin_wobble=0.3, tilt_deg=9.0, roll_deg=3.0, seed=151, **base), "nothing (control)"),
+        (S(name="control_box", shape="box", spin_rate=15.0, spin_axis="random", tilt_deg=11.0,
+           roll_deg=-2.0, seed=152, **base), "nothing (control)"),
+        (S(name="control_cylinder", shape="cylinder", spin_rate=6.0, spin_axis="random",
+           tilt_deg=6.0, roll_deg=-5.0, depth_range=(1.5, 1.8), seed=153, **base),
+         "nothing (control)"),
+        (S(name="control_ball", **tennis, spin_rate=0.0, tilt_deg=7.0, roll_deg=2.0, seed=154,
+           **base), "nothing (control)"),
+    ]
+
+
+def twin_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:
+    """The same recording without its hidden effect."""
+    return spec.replace(fluid=False, fluid_sphere=False, fluidcoef=None, hidden_weight=None,
+                        fps_stated=None, distortion=None)
+
+
+def _centroids(masks) -> np.ndarray:
+    out = []
+    for m in masks:
+        ys, xs = np.nonzero(m)
+        out.append([xs.mean(), ys.mean()])
+    return np.asarray(out)
+
+
+def effect_size(spec: mr.RecordingSpec, folder: Path) -> dict:
+    """Centroid shift (px) between the recording's true masks and its effect-free twin.
+
+    The twin starts from the same state (truth params). Force / body effects: simulated again
+    without them. Clock: the same flight sampled at the stated frame times i / fps_stated.
+    Lens: the same poses projected without distortion. Twin masks are the mesh projected with the
+    numpy rasteriser of make_recordings (matches MuJoCo's masks to IoU >= 0.95, ~0.05 px).
+    """
+    truth = json.loads((folder / "truth.json").read_text())
+    with np.load(folder / "masks.npz") as z:
+        masks = z["masks"].astype(bool)
+    mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+    V, F = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    cam = mr.camera_intrinsics(spec.width, spec.height, spec.fovy_deg)
+    p = truth["params"]
+    ic = (np.asarray(p["position"]), np.asarray(p["orientation_wxyz"]), np.asarray(p["velocity"]),
+          np.asarray(p["angular_velocity"]))
+    n = spec.n_frames
+    if spec.distortion is not None:
+        poses = list(zip(truth["per_frame"]["R"], truth["per_frame"]["position"]))
+    else:
+        twin = twin_spec(spec)
+        scene = mr.Scene(twin, mesh)
+        fps = spec.fps if spec.fps_stated is None else spec.fps_stated
+        qpos = scene.simulate(ic, np.arange(n) / fps)
+        poses = [scene.pose_cam(q) for q in qpos]
+    twin_masks = [mr.render_silhouette(V, F, np.asarray(R), np.asarray(t), cam) for R, t in poses]
+    shift = np.linalg.norm(_centroids(masks) - _centroids(twin_masks), axis=1)
+    radius = float(np.sqrt(masks.sum((1, 2)).mean() / np.pi))
+    return {"last_px": float(shift[-1]), "max_px": float(shift.max()),
+            "object_radius_px": radius}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=str(DEFAULT_OUT), help="output folder")
+    ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
+    ap.add_argument("--list", action="store_true", help="list the specs and exit")
+    ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
+    args = ap.parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    specs = concealed_specs()
+    if args.list:
+        for s, what in specs:
+            print(f"{s.name:18s} {what}")
+        return 0
+    only = {n for o in args.only for n in o.split(",") if n}
+    if only:
+        unknown = only - {s.name for s, _ in specs}
+        if unknown:
+            raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
+        specs = [(s, w) for s, w in specs if s.name in only]
+    out = Path(args.out)
+    rows = []
+    for spec, what in specs:
+        summary = mr.make_recording(spec, out)
+        truth = json.loads((out / spec.name / "truth.json").read_text())
+        size = effect_size(spec, out / spec.name)
+        rows.append({"name": spec.name, "hides": what, "effects": truth["effects"],
+                     "shape": spec.shape, "size": f"{spec.width}x{spec.height}x{spec.n_frames}",
+                     "iou_min_check": summary["iou_min"], **size})
+    (out / "concealed_summary.json").write_text(json.dumps(rows, indent=1))
+    print()
+    if args.markdown:
+        print("| recording | hides | truth (torchfit parameters) | shift last frame (px) "
+              "| worst (px) | object radius (px) |")
+        print("|---|---|---|---|---|---|")
+    for r in rows:
+        eff = "; ".join(f"{k}: " + ", ".join(f"{p}={_fmt(v)}" for p, v in d.items())
+                        for k, d in r["effects"].items()) or "{}"
+        if args.markdown:
+            print(f"| {r['name']} | {r['hides']} | {eff} | {r['last_px']:.1f} | {r['max_px']:.1f} "
+                  f"| {r['object_radius_px']:.0f} |")
+        else:
+            print(f"{r['name']:18s} {r['last_px']:6.1f} px (worst {r['max_px']:5.1f})  "
+                  f"r={r['object_radius_px']:3.0f} px  {eff}")
+    return 0
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list):
+        return "(" + ", ".join(f"{x * 1000:.1f}" for x in v) + ") mm"
+    return f"{v:.4g}"
+
+
+if __name__ == "__main__":
+    sys.exit(main())

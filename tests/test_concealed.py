@@ -1,0 +1,180 @@
+"""The concealed set (experiments/discover/make_concealed.py): hidden effects and their truth.
+
+The first test runs by default when MuJoCo is installed (a few seconds, no rendering): it checks
+the derivation of the engine's drag and lift coefficients in torchfit's conventions by flying the
+same throw in MuJoCo (ellipsoid fluid model) and in torchfit's integrator with the derived
+effects. The others render small versions of the recordings and are marked ``recordings``.
+"""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+RECORDINGS = ROOT / "experiments" / "recordings"
+CONCEALED = ROOT / "experiments" / "discover" / "make_concealed.py"
+
+
+def _load(name: str, path: Path):
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses need the module registered
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def mods():
+    os.environ.setdefault("MUJOCO_GL", "osmesa")  # before mujoco is imported
+    pytest.importorskip("mujoco")
+    sys.path.insert(0, str(RECORDINGS))
+    mr = _load("make_recordings", RECORDINGS / "make_recordings.py")
+    mc = _load("make_concealed", CONCEALED)
+    return mr, mc
+
+
+@pytest.mark.parametrize("name", ["drag_ball", "drag_tshape", "magnus_tshape"])
+def test_engine_coefficients_reproduce_mujoco_flight(mods, tmp_path, name):
+    """MuJoCo with fluid forces vs torchfit.integrate with quadratic_drag / magnus at the derived
+    coefficients: same trajectory to 1e-4 of the fluid's own effect (measured ~1e-8)."""
+    from torchfit.dynamics import RigidBody, integrate
+    from torchfit.effects import make_effect
+    from torchfit.shape import load_shape
+
+    mr, mc = mods
+    spec = next(s for s, _ in mc.concealed_specs() if s.name == name)
+    mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+    scene = mr.Scene(spec, mesh)
+    vacuum = mr.Scene(mc.twin_spec(spec), mesh)
+    rng = np.random.default_rng(7)
+    ic = (np.array([-0.3, 0.1, 1.5]), mr.random_quat(rng), np.array([2.5, -3.5, 0.4]),
+          np.array([4.0, -15.0, 8.0]))  # spinning fast, so a wrong lift would show
+    times = np.arange(46) / 60.0
+    pos = np.array([scene.pose_cam(q)[1] for q in scene.simulate(ic, times)])
+    pos_vac = np.array([vacuum.pose_cam(q)[1] for q in vacuum.simulate(ic, times)])
+
+    effects = mr.hidden_effects(spec, scene, mesh)
+    expected = {"drag_ball": {"quadratic_drag"}, "drag_tshape": {"quadratic_drag"},
+                "magnus_tshape": {"magnus"}}[name]
+    assert set(effects) == expected
+    mesh.export(tmp_path / "mesh.obj")
+    shape = load_shape(tmp_path / "mesh.obj", density=spec.density)
+    assert shape.mass == pytest.approx(scene.mass, rel=1e-6)
+    modules = [make_effect(k, area=shape.reference_area, **v) for k, v in effects.items()]
+    state0 = torch.tensor(np.concatenate(ic), dtype=torch.float64)[None]
+    gravity = torch.tensor(9.81 * mr.gravity_dir(spec.tilt_deg, spec.roll_deg))
+    body = RigidBody.from_shape(shape, torch.float64)
+    with torch.no_grad():
+        ours = integrate(state0, torch.tensor(times), body, gravity, modules,
+                         step_size=1 / 2000).position[0].numpy()
+    effect = np.abs(pos - pos_vac).max()
+    assert effect > 0.01  # the fluid moves the body by centimetres over 0.75 s
+    assert np.abs(pos - ours).max() < 1e-4 * effect
+    # and a coefficient 10 % off is 1e3 times worse than the derived one: the check can fail
+    wrong = [make_effect(k, area=shape.reference_area, **{p: 1.1 * v for p, v in d.items()})
+             for k, d in effects.items()]
+    with torch.no_grad():
+        off = integrate(state0, torch.tensor(times), body, gravity, wrong,
+                        step_size=1 / 2000).position[0].numpy()
+    assert np.abs(pos - off).max() > 0.05 * effect
+
+
+def test_coefficients_formula(mods):
+    """C_d = 2 C_blunt, C_L = 8/3 (C_M - 1/2) for MuJoCo's sphere (added mass = half its volume)."""
+    mr, mc = mods
+    spec = mr.RecordingSpec(name="x", shape="sphere", **mc.drag(0.3))
+    mesh = mr.make_mesh("sphere", spec.ball_radius)
+    fl = mr.fluid_truth(spec, mr.Scene(spec, mesh), mesh)
+    assert fl["drag_coefficient"] == pytest.approx(0.6)
+    assert fl["added_mass_volume_m3"] == pytest.approx(fl["volume_m3"] / 2, rel=1e-4)
+    spec = spec.replace(**mc.lift(1.25))
+    fl = mr.fluid_truth(spec, mr.Scene(spec, mesh), mesh)
+    assert fl["lift_coefficient"] == pytest.approx(8 / 3 * 0.75, rel=1e-4)
+    assert fl["drag_coefficient"] == 0.0
+
+
+def test_every_effect_has_two_recordings_and_four_controls(mods):
+    _, mc = mods
+    hides = {}
+    for spec, _ in mc.concealed_specs():
+        kinds = [k for k in ("fluid", "hidden_weight", "fps_stated", "distortion")
+                 if getattr(spec, k) not in (None, False)]
+        assert len(kinds) <= 1, spec.name
+        hides.setdefault(kinds[0] if kinds else "none", []).append(spec.name)
+    assert len(hides["none"]) >= 4
+    for k in ("hidden_weight", "fps_stated", "distortion"):
+        assert len(hides[k]) >= 2, k
+    names = hides["fluid"]
+    assert sum(n.startswith("drag") for n in names) >= 2
+    assert sum(n.startswith("magnus") for n in names) >= 2
+
+
+SMALL = {"width": 320, "height": 240, "n_frames": 20}
+
+
+@pytest.mark.recordings
+@pytest.mark.parametrize("name", ["drag_ball", "magnus_tshape", "com_tshape", "time_box",
+                                  "lens_box", "control_cylinder"])
+def test_small_recording_truth(mods, tmp_path, name):
+    """A 320x240x20 version of each kind: files, effects truth, container fps, hidden geoms kept
+    out of the masks, distorted masks matching the distorted mesh, effect size vs its twin."""
+    import cv2
+
+    mr, mc = mods
+    spec = next(s for s, _ in mc.concealed_specs() if s.name == name).replace(**SMALL)
+    if spec.distortion is not None:  # nearest-neighbour remapped masks: ~0.5 px jagged edge,
+        spec = spec.replace(min_iou=0.93)  # which costs more IoU at half size (0.95 at 640x480)
+    summary = mr.make_recording(spec, tmp_path, verbose=False)
+    assert summary["iou_min"] >= spec.min_iou  # distortion: the distorted mesh vs remapped masks
+    folder = tmp_path / name
+    truth = json.loads((folder / "truth.json").read_text())
+    cam = json.loads((folder / "camera.json").read_text())
+    assert "dist_coeffs" not in cam
+    effects = truth["effects"]
+    cap = cv2.VideoCapture(str(folder / "video.mp4"))
+    container_fps = cap.get(cv2.CAP_PROP_FPS)
+    cap.release()
+    size = mc.effect_size(spec, folder)
+    if name == "control_cylinder":
+        assert effects == {}
+        assert size["max_px"] < 0.3
+        assert container_fps == pytest.approx(spec.fps, rel=1e-3)
+        return
+    assert size["max_px"] > 1.0
+    if name == "time_box":
+        assert container_fps == pytest.approx(60.0, rel=1e-3)
+        assert truth["fps_true"] == 58.5 and truth["fps"] == 58.5
+        assert effects == {"time_scale": {"time_scale": pytest.approx(58.5 / 60.0)}}
+    if name == "com_tshape":
+        offset = np.asarray(effects["com_offset"]["offset"])
+        assert 0.005 < np.linalg.norm(offset) < 0.015
+        np.testing.assert_allclose(np.asarray(truth["object"]["com"]) + offset,
+                                   truth["hidden_weight"]["body_com"], atol=1e-12)
+        assert truth["object"]["mass"] == pytest.approx(0.189)  # the visible uniform T-handle
+    if name == "lens_box":
+        assert effects == {"lens_distortion": {"k1": -0.2, "k2": 0.04}}
+        assert truth["camera_true"]["dist_coeffs"][:2] == [-0.2, 0.04]
+    if name in ("drag_ball", "magnus_tshape"):
+        assert set(effects) == {"drag_ball": {"quadratic_drag"},
+                                "magnus_tshape": {"magnus"}}[name]
+
+
+@pytest.mark.recordings
+def test_shipped_recording_unchanged(mods, tmp_path):
+    """The new spec fields default to the old behaviour: tshape_small's files regenerate
+    byte-for-byte (the H.264 stream aside)."""
+    mr, _ = mods
+    spec = next(s for s in mr.shipped_specs() if s.name == "tshape_small")
+    mr.make_recording(spec, tmp_path, verbose=False)
+    shipped = ROOT / "torchfit" / "recordings" / "tshape_small"
+    for f in ("truth.json", "camera.json", "mesh.obj", "masks.npz"):
+        assert (tmp_path / "tshape_small" / f).read_bytes() == (shipped / f).read_bytes(), f
