@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from . import render
 from .camera import Camera
 from .dynamics import RigidBody
+from .paper import basin as paper_basin
 from .paper import kalman as paper_kalman
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
@@ -282,5 +283,6 @@ def run_fit(cfg: DictConfig, out_dir: Path) -> dict:
 # themselves here; each writes its figures and a summary.json into out_dir.
 TASKS = {
     "fit": run_fit,
+    "paper_basin": lambda cfg, out: paper_basin.main(out, **params(cfg), **context(cfg)),
     "paper_kalman": lambda cfg, out: paper_kalman.main(out, **params(cfg), **context(cfg)),
 }
