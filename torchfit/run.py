@@ -21,6 +21,7 @@ from .camera import Camera
 from .dynamics import RigidBody
 from .paper import basin as paper_basin
 from .paper import kalman as paper_kalman
+from .paper import roll as paper_roll
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
 from .search import FitResult, Problem, SearchSettings, fit
@@ -285,4 +286,5 @@ TASKS = {
     "fit": run_fit,
     "paper_basin": lambda cfg, out: paper_basin.main(out, **params(cfg), **context(cfg)),
     "paper_kalman": lambda cfg, out: paper_kalman.main(out, **params(cfg), **context(cfg)),
+    "paper_roll": lambda cfg, out: paper_roll.main(out, **params(cfg), **context(cfg)),
 }
