@@ -21,6 +21,8 @@ from .camera import Camera
 from .dynamics import RigidBody
 from .paper import basin as paper_basin
 from .paper import kalman as paper_kalman
+from .paper import predict as paper_predict
+from .paper import tshape_fig3 as paper_tshape
 from .paper import roll as paper_roll
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
@@ -284,6 +286,8 @@ def run_fit(cfg: DictConfig, out_dir: Path) -> dict:
 # themselves here; each writes its figures and a summary.json into out_dir.
 TASKS = {
     "fit": run_fit,
+    "paper_tshape": lambda cfg, out: paper_tshape.main(out, **params(cfg), **context(cfg)),
+    "paper_predict": lambda cfg, out: paper_predict.main(out, **params(cfg), **context(cfg)),
     "paper_basin": lambda cfg, out: paper_basin.main(out, **params(cfg), **context(cfg)),
     "paper_kalman": lambda cfg, out: paper_kalman.main(out, **params(cfg), **context(cfg)),
     "paper_roll": lambda cfg, out: paper_roll.main(out, **params(cfg), **context(cfg)),

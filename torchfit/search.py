@@ -456,13 +456,17 @@ def _distinct(cands: Candidates, losses: Tensor, symmetries: Tensor, limit: int)
 
 
 def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
-        progress: Callable[[str], None] | None = None) -> FitResult:
+        progress: Callable[[str], None] | None = None,
+        snapshot: Callable[[str, Candidates, Tensor], None] | None = None) -> FitResult:
     """Find the initial state and gravity that best explain the silhouettes, with no guess.
 
     Args:
         problem: the observation as tensors (see :class:`Problem`).
         settings: search knobs.
         progress: called with one-line status messages.
+        snapshot: called after the seeds, each refinement stage and the polish with the
+            stage name, the surviving candidates and their (B,) losses (best first), to look
+            at the search's progress; it must not change them.
 
     Returns:
         A :class:`FitResult` with the distinct minima, best first.
@@ -526,6 +530,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     cands = seeds.select(order)
     history.append(("seeds", time.perf_counter() - clock, float(scores[order[0]]), count))
     say(f"seeds: {count} pairs scored on {seed_frames} frames, {len(cands)} survive, best {float(scores[order[0]]):.5f}")
+    if snapshot is not None:
+        snapshot("seeds", cands, scores[order])
 
     # stage 4: joint refinement with curriculum and successive halving
     losses = scores[order]
@@ -542,6 +548,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
         order = torch.argsort(losses)
         cands, losses = _distinct(cands.select(order), losses[order], symmetries, n_keep)
         history.append((f"refine {index + 1}", time.perf_counter() - clock, float(losses[0]), len(cands)))
+        if snapshot is not None:
+            snapshot(f"refine {index + 1}", cands, losses)
 
     # stage 5: distinct minima (modulo symmetry), polished, best first
     cands, losses = _distinct(cands, losses, symmetries, settings.final)
@@ -553,6 +561,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     cands, losses = _distinct(cands, losses, symmetries, settings.final)
     history.append(("polish", time.perf_counter() - clock, float(losses[0]), len(cands)))
     say(f"polish: best loss {float(losses[0]):.5f}")
+    if snapshot is not None:
+        snapshot("polish", cands, losses)
     with torch.no_grad():
         state = cands.state(problem.body)
     return FitResult(cands, losses.detach(), state.detach(), history, curve, track)
