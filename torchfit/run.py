@@ -6,6 +6,7 @@ key, the value and what was expected.
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -16,6 +17,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from . import discover as discovery
 from . import render
 from .camera import Camera
 from .dynamics import RigidBody
@@ -258,6 +260,8 @@ def run_fit(cfg: DictConfig, out_dir: Path) -> dict:
     started = time.perf_counter()
     ctx = context(cfg)
     data = cfg.data
+    if data.get("points"):
+        return run_points(cfg, out_dir, discover=False)
     if not data.video:
         raise ConfigError("data.video: give the recording (a video file, image folder or masks folder)")
     if data.fps is not None and not float(data.fps) > 0:
@@ -282,10 +286,58 @@ def run_fit(cfg: DictConfig, out_dir: Path) -> dict:
     return content
 
 
+def run_points(cfg: DictConfig, out_dir: Path, *, discover: bool) -> dict:
+    """``data.points`` (a ``t,x,y,z`` CSV): fit the point-mass flight, or discover its missing physics.
+
+    The object gives mass, reference area (πr² for ``object=sphere``) and moment of inertia;
+    gravity is ``-dynamics.g`` along the data's ``z`` (fixed, not fitted).
+    """
+    from .points import batch_tracks, load_points
+
+    ctx = context(cfg)
+    if float(cfg.dynamics.g) <= 0:
+        raise ConfigError(f"dynamics.g must be positive m/s^2, got {cfg.dynamics.g}")
+    shape = build_shape(cfg.object)
+    area = math.pi * float(cfg.object.radius) ** 2 if cfg.object.get("primitive") == "sphere" else shape.reference_area
+    spin = list(cfg.data.spin) if cfg.data.get("spin") is not None else None
+    data = batch_tracks([load_points(str(cfg.data.points), spin=spin)])
+    body = {"area": area, "mass": float(shape.mass), "moment": float(np.trace(shape.inertia)) / 3,
+            "g": float(cfg.dynamics.g)}
+    if not discover:
+        effects = list(cfg.dynamics.get("effects") or [])
+        return discovery.fit_points(data, effects=effects, out_dir=out_dir, **body)
+    settings = params(cfg)
+    quick = bool(settings.pop("quick", False))
+    candidates = settings.pop("candidates", None) or list(discovery.POINT_EFFECTS)
+    if quick:
+        candidates = [c for c in candidates if c in ("quadratic_drag", "magnus")]
+    try:
+        rules = discovery.SelectionSettings(**settings)
+    except TypeError as err:
+        raise ConfigError(f"params: {err}") from None
+    ctx["progress"](f"points: {int(data.weights.sum())} samples from {cfg.data.points}")
+    summary = discovery.discover_points(data, candidates=candidates, settings=rules, out_dir=out_dir,
+                                        progress=ctx["progress"], **body)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
+    return summary
+
+
+def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
+    """``task: discover``: find the physics a fit leaves out (3D points; video is not done yet)."""
+    if cfg.data.get("points"):
+        return run_points(cfg, out_dir, discover=True)
+    if cfg.data.get("video"):
+        raise ConfigError("discover on video is not implemented yet; give data.points=<t,x,y,z csv> "
+                          "(video discover will plug into torchfit.discover.select_effects)")
+    raise ConfigError("data.points: give a t,x,y,z CSV to discover on")
+
+
 # Task name (config key ``task``) -> function(cfg, out_dir) -> summary dict. Experiments add
 # themselves here; each writes its figures and a summary.json into out_dir.
 TASKS = {
     "fit": run_fit,
+    "discover": run_discover,
     "paper_tshape": lambda cfg, out: paper_tshape.main(out, **params(cfg), **context(cfg)),
     "paper_predict": lambda cfg, out: paper_predict.main(out, **params(cfg), **context(cfg)),
     "paper_basin": lambda cfg, out: paper_basin.main(out, **params(cfg), **context(cfg)),

@@ -1,0 +1,101 @@
+"""Discover on synthetic point tracks (torchfit's own simulator): the control, drag, drag + Magnus."""
+
+import json
+import math
+
+import pytest
+from hydra import compose, initialize_config_module
+
+from torchfit.discover import SelectionSettings, discover_points, select_effects
+from torchfit.points import batch_tracks, synthesize_track, write_points
+from torchfit.run import ConfigError, run
+
+AREA, MASS = math.pi * 0.02 ** 2, 0.0027
+BALL = {"area": AREA, "mass": MASS, "moment": 2 / 3 * MASS * 0.02 ** 2}
+CANDIDATES = ["quadratic_drag", "linear_drag", "magnus", "time_scale"]
+
+
+def _discover(effects, params, **kw):
+    track = synthesize_track(effects, params, samples=70, seed=kw.pop("seed", 0), **kw)
+    return discover_points(batch_tracks([track]), candidates=CANDIDATES, **BALL)
+
+
+def test_control_with_nothing_missing_says_nothing():
+    content = _discover([], {})
+    assert content["verdict"] == []
+    assert content["models"][0]["rms_m"] < 1.2 * content["noise_rms_m"]
+    assert all(not entry["passes"] for tries in content["effects"].values() for entry in tries)
+
+
+def test_drag_track_finds_quadratic_drag_with_its_coefficient():
+    content = _discover(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): 0.45})
+    assert content["verdict"] == ["quadratic_drag"]
+    drag = content["models"][1]["params"]["quadratic_drag"]["drag_coefficient"]
+    assert abs(drag["value"] - 0.45) < 0.045 and 0 < drag["std"] < 0.05
+    first = content["effects"]["quadratic_drag"][0]
+    assert first["heldout_rms_after"] < 0.2 * first["heldout_rms_before"] and first["delta_bic"] > 100
+    assert content["located"]["direction_rms_m"]["along_velocity"] == max(content["located"]["direction_rms_m"].values())
+
+
+def test_drag_and_magnus_track_finds_both_in_order():
+    content = _discover(["quadratic_drag", "magnus"], {("quadratic_drag", "drag_coefficient"): 0.5,
+                                                        ("magnus", "lift_coefficient"): 0.6}, spin=(-120.0, 0.0, 30.0))
+    assert content["verdict"] == ["quadratic_drag", "magnus"]
+    params = content["models"][-1]["params"]
+    assert abs(params["quadratic_drag"]["drag_coefficient"]["value"] - 0.5) < 0.05
+    assert abs(params["magnus"]["lift_coefficient"]["value"] - 0.6) < 0.06
+    assert content["models"][-1]["heldout_rms_m"] < 1.5 * content["noise_rms_m"]
+
+
+def test_lookalikes_are_reported_not_named():
+    class Twins:  # two candidates that fit equally well: the engine must not pick one
+        noise_var = 1.0
+        candidates = ("quadratic_drag", "linear_drag")
+
+        def fit(self, effects, warm):
+            from torchfit.discover import ModelFit
+            rss = 1000.0 if not effects else 100.0
+            return ModelFit(tuple(effects), rss, 500, 6 + len(effects), {}, rss ** 0.5, (rss / 500) ** 0.5)
+
+    selection = select_effects(Twins(), SelectionSettings())
+    assert selection.verdict == [] and sorted(selection.steps[0].indistinguishable) == ["linear_drag", "quadratic_drag"]
+
+
+def _compose(overrides):
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        return compose(config_name="config", overrides=overrides)
+
+
+def test_cli_points_fit_and_discover(tmp_path):
+    track = synthesize_track(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): 0.5}, samples=50)
+    path = tmp_path / "track.csv"
+    write_points(track, path)
+    common = [f"data.points={path}", "object=sphere", "object.radius=0.02", "object.mass=0.0027", "quiet=true"]
+    result = run(_compose(["experiment=fit", *common, "dynamics.effects=[quadratic_drag]"]), tmp_path / "fit")
+    assert abs(result["params"]["quadratic_drag"]["drag_coefficient"]["value"] - 0.5) < 0.05
+    assert (tmp_path / "fit" / "result.json").exists()
+    summary = run(_compose(["experiment=discover", *common, "data.spin=null", "params.quick=true"]), tmp_path / "d")
+    assert summary["verdict"] == ["quadratic_drag"]
+    assert json.loads((tmp_path / "d" / "discover.json").read_text())["verdict"] == ["quadratic_drag"]
+
+
+def test_discover_on_video_is_a_clear_error(tmp_path):
+    cfg = _compose(["experiment=discover", "data.points=null", "data.video=some.mp4"])
+    with pytest.raises(ConfigError, match="discover on video is not implemented yet"):
+        run(cfg, tmp_path)
+
+
+def test_an_effect_fitted_outside_its_physics_is_not_named():
+    class Disguise:  # linear drag fits best, but with a negative damping: not linear drag
+        noise_var = 1.0
+        candidates = ("linear_drag",)
+
+        def fit(self, effects, warm):
+            from torchfit.discover import ModelFit
+            rss = 1000.0 if not effects else 100.0
+            params = {"linear_drag": {"damping": {"value": -0.01, "std": 0.001, "unit": "kg/s"}}} if effects else {}
+            return ModelFit(tuple(effects), rss, 500, 6 + len(effects), params, rss ** 0.5, (rss / 500) ** 0.5)
+
+    selection = select_effects(Disguise(), SelectionSettings())
+    assert selection.verdict == []
+    assert selection.steps[0].scores["linear_drag"]["unphysical"]

@@ -1,0 +1,182 @@
+"""The effect library: shapes, gradients (float64 gradcheck), registry errors, body/clock/camera kinds."""
+
+import math
+
+import pytest
+import torch
+
+from torchfit.dynamics import RigidBody, simulate
+from torchfit.effects import (
+    EFFECTS,
+    KINDS,
+    FlightState,
+    apply_effects,
+    make_effect,
+    split_effects,
+)
+from torchfit.shape import load_shape
+
+F64 = torch.float64
+AREA = math.pi * 0.02 ** 2
+FORCE_PARAMS = {
+    "quadratic_drag": {"drag_coefficient": 0.45},
+    "linear_drag": {"damping": 0.01},
+    "magnus": {"lift_coefficient": 0.7},
+    "angular_drag": {"spin_damping": 1e-6},
+    "wind": {"wind_velocity": [0.5, -1.0, 0.2], "drag_coefficient": 0.5},
+}
+
+
+def _state(batch=3, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    rand = lambda *shape: torch.randn(*shape, dtype=F64, generator=generator)
+    rot = torch.linalg.qr(rand(batch, 3, 3)).Q
+    return FlightState(torch.tensor(0.1, dtype=F64), rand(batch, 3), rot, 3 * rand(batch, 3), 50 * rand(batch, 3),
+                       torch.tensor(0.0027, dtype=F64))
+
+
+def test_registry_holds_the_vocabulary_and_kinds():
+    assert set(EFFECTS) == {"quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset",
+                            "inertia", "time_scale", "lens_distortion", "rolling_shutter"}
+    for name, cls in EFFECTS.items():
+        assert cls.name == name and cls.kind in KINDS
+        assert set(cls.units) == set(cls.null_params), name
+        assert cls.__doc__ and "=" in cls.__doc__.splitlines()[0], f"{name}: one-line equation in the docstring"
+
+
+def test_bad_names_and_parameters_raise_listing_valid_ones():
+    with pytest.raises(ValueError, match="Must be one of.*quadratic_drag"):
+        make_effect("drag", area=AREA)
+    with pytest.raises(ValueError, match="its parameters are.*drag_coefficient"):
+        make_effect("quadratic_drag", area=AREA, drag=0.4)
+    with pytest.raises(ValueError, match="wind_velocity must be a \\(3,\\)"):
+        make_effect("wind", area=AREA, wind_velocity=[1.0, 2.0])
+    with pytest.raises(ValueError, match="time_scale must be positive"):
+        make_effect("time_scale", area=AREA, time_scale=-1.0)
+    with pytest.raises(ValueError, match="area must be positive"):
+        make_effect("magnus", area=-1.0)
+
+
+@pytest.mark.parametrize("name", sorted(FORCE_PARAMS))
+def test_force_shapes_and_null_parameters_vanish(name):
+    state = _state()
+    with torch.no_grad():
+        force, torque = make_effect(name, area=AREA, **FORCE_PARAMS[name]).double()(state)
+    assert force.shape == torque.shape == (3, 3)
+    assert float(force.abs().sum() + torque.abs().sum()) > 0
+    null = make_effect(name, area=AREA, **EFFECTS[name].null_params).double()
+    with torch.no_grad():
+        force, torque = null(state)
+    assert float(force.abs().max() + torque.abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("name", sorted(FORCE_PARAMS))
+def test_force_gradcheck_wrt_state_and_parameters(name):
+    effect = make_effect(name, area=AREA, **FORCE_PARAMS[name]).double()
+    base = _state(batch=2, seed=1)
+    names = [n for n, _ in effect.named_parameters()]
+
+    def func(position, velocity, omega, *params):
+        clone = type(effect).__new__(type(effect))
+        clone.__dict__ = {**effect.__dict__, "_parameters": dict(zip(names, params))}
+        state = FlightState(base.time, position, base.rot, velocity, omega, base.mass)
+        return clone(state)
+
+    inputs = [base.position.clone().requires_grad_(), base.velocity.clone().requires_grad_(),
+              base.angular_velocity.clone().requires_grad_()]
+    inputs += [p.detach().clone().requires_grad_() for p in effect.parameters()]
+    assert torch.autograd.gradcheck(func, inputs)
+
+
+def test_per_candidate_parameters_broadcast():
+    state = _state(batch=3)
+    batched = make_effect("quadratic_drag", area=AREA, drag_coefficient=torch.tensor([0.1, 0.2, 0.3], dtype=F64))
+    with torch.no_grad():
+        force, _ = batched.double()(state)
+        single = make_effect("quadratic_drag", area=AREA, drag_coefficient=0.2).double()(state)[0]
+        windless = make_effect("wind", area=AREA, wind_velocity=torch.zeros(3, 3, dtype=F64),
+                               drag_coefficient=0.2).double()(state)[0]
+    assert torch.allclose(force[1], single[1])
+    assert torch.allclose(windless, single)  # no wind: plain drag
+
+
+def test_magnus_is_the_textbook_lift_for_spin_across_the_flight():
+    state = FlightState(torch.tensor(0.0), torch.zeros(1, 3), torch.eye(3)[None], torch.tensor([[5.0, 0, 0]]),
+                        torch.tensor([[0.0, 0, 100.0]]), torch.tensor(0.0027))
+    with torch.no_grad():
+        force, _ = make_effect("magnus", area=AREA, lift_coefficient=0.8, air_density=1.2)(state)
+    spin_ratio = 0.02 * 100 / 5
+    expected = 0.5 * 1.2 * AREA * (0.8 * spin_ratio) * 5 ** 2  # ½ ρ A C_L,std |v|², along ω̂ × v̂ = +y
+    assert torch.allclose(force, torch.tensor([[0.0, expected, 0.0]]), rtol=1e-6)
+
+
+def test_body_clock_and_camera_effects():
+    tshape = load_shape(primitive="tshape", density=600.0)
+    body = RigidBody.from_shape(tshape, F64)
+    effects = [make_effect("com_offset", area=1.0, offset=[0.01, 0.0, -0.02]).double(),
+               make_effect("inertia", area=1.0, moment_scale=[1.0, 2.0, 0.5]).double(),
+               make_effect("time_scale", area=1.0, time_scale=2.0).double(),
+               make_effect("quadratic_drag", area=AREA, drag_coefficient=0.3).double()]
+    kinds = split_effects(effects)
+    assert [len(kinds[k]) for k in KINDS] == [1, 2, 1, 0]
+    times = torch.linspace(0.0, 1.0, 5, dtype=F64)
+    with torch.no_grad():
+        new_body, true_times, forces = apply_effects(effects, body, times)
+    assert torch.allclose(new_body.com, body.com + torch.tensor([0.01, 0.0, -0.02], dtype=F64))
+    moments = torch.linalg.eigvalsh(body.inertia)
+    assert torch.allclose(torch.linalg.eigvalsh(new_body.inertia), torch.sort(moments * torch.tensor([1.0, 2.0, 0.5],
+                                                                                dtype=F64)).values)
+    assert torch.allclose(true_times, times / 2) and forces == [effects[3]]
+    new_body.validate()
+    # the offset changes the flight of a spinning body: the mesh origin wobbles about the true centre
+    state = torch.zeros(1, 13, dtype=F64)
+    state[0, 3] = 1.0
+    state[0, 10:13] = torch.tensor([0.0, 0.0, 20.0])
+    a = simulate(state, times, body, torch.zeros(3, dtype=F64))
+    b = simulate(state, times, new_body, torch.zeros(3, dtype=F64))
+    assert float((a.position - b.position).abs().max()) > 1e-3
+    # non-force effects add nothing to the ODE
+    with torch.no_grad():
+        force, torque = effects[0](_state())
+    assert float(force.abs().max() + torque.abs().max()) == 0.0
+
+
+def test_body_and_camera_effect_gradcheck():
+    tshape = load_shape(primitive="tshape", density=600.0)
+    body = RigidBody.from_shape(tshape, F64)
+    inertia = make_effect("inertia", area=1.0).double()
+    com = make_effect("com_offset", area=1.0).double()
+    clock = make_effect("time_scale", area=1.0).double()
+    lens = make_effect("lens_distortion", area=1.0).double()
+    shutter = make_effect("rolling_shutter", area=1.0).double()
+    times = torch.linspace(0.0, 0.5, 4, dtype=F64)
+    points = torch.randn(2, 5, 2, dtype=F64, generator=torch.Generator().manual_seed(3)) * 0.3
+
+    def call(module, pname, value, method, *args):
+        clone = type(module).__new__(type(module))
+        clone.__dict__ = {**module.__dict__, "_parameters": {**module._parameters, pname: value}}
+        return getattr(clone, method)(*args)
+
+    checks = [
+        lambda s: call(inertia, "moment_scale", s, "apply_body", body).inertia,
+        lambda s: call(com, "offset", s, "apply_body", body).com,
+    ]
+    for check, value in zip(checks, ([1.2, 0.9, 1.1], [0.01, 0.02, -0.01])):
+        assert torch.autograd.gradcheck(check, (torch.tensor(value, dtype=F64, requires_grad=True),))
+    assert torch.autograd.gradcheck(lambda s, t: call(clock, "time_scale", s, "true_times", t),
+                                    (torch.tensor(1.1, dtype=F64, requires_grad=True), times.requires_grad_()))
+    assert torch.autograd.gradcheck(
+        lambda k1, k2, x: _distort(lens, k1, k2, x),
+        (torch.tensor(-0.2, dtype=F64, requires_grad=True), torch.tensor(0.05, dtype=F64, requires_grad=True),
+         points.requires_grad_()))
+    rows = torch.tensor([[10.0, 240.0, 470.0]], dtype=F64)
+    assert torch.autograd.gradcheck(lambda d: call(shutter, "line_delay", d, "row_delay", rows, 240.0),
+                                    (torch.tensor(2e-5, dtype=F64, requires_grad=True),))
+    assert torch.allclose(call(shutter, "line_delay", torch.tensor(1e-5, dtype=F64), "row_delay", rows, 240.0),
+                          torch.tensor([[-2.3e-3, 0.0, 2.3e-3]], dtype=F64))
+
+
+def _distort(lens, k1, k2, points):
+    clone = type(lens).__new__(type(lens))
+    clone.__dict__ = {**lens.__dict__, "_parameters": {"k1": k1, "k2": k2}}
+    return clone.distort(points)

@@ -1,0 +1,118 @@
+"""3D point tracks: the CSV and SpinDOE loaders, the point-mass fit, and the points CLI."""
+
+import json
+import math
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchfit.discover import PointsProblem, discover_points, fit_points
+from torchfit.points import (
+    PointModel,
+    batch_tracks,
+    fit_tracks,
+    load_points,
+    load_spindoe,
+    split_at_impacts,
+    synthesize_track,
+    write_points,
+)
+
+SPINDOE = Path("/work/shared/data/spindoe/trajectories.zip")
+AREA, MASS = math.pi * 0.02 ** 2, 0.0027
+BALL = {"area": AREA, "mass": MASS, "moment": 2 / 3 * MASS * 0.02 ** 2}
+
+
+def test_load_points_comma_semicolon_and_header(tmp_path):
+    (tmp_path / "a.csv").write_text("t,x,y,z\n" + "\n".join(f"{i / 100},{i},{0},{-i}" for i in range(8)))
+    (tmp_path / "b.csv").write_text("\n".join(f"{i / 100};{i};{0};{-i}" for i in range(8)))
+    a, b = load_points(tmp_path / "a.csv"), load_points(tmp_path / "b.csv", spin=[1, 2, 3])
+    assert a.positions.shape == (8, 3) and np.allclose(a.positions, b.positions) and a.spin is None
+    assert np.allclose(b.spin, [1, 2, 3])
+
+
+@pytest.mark.parametrize("text, match", [
+    ("t,x,y,z\n0,0,0,0\n0.1,0,0,0\n0.1,1,1,1\n" + "".join(f"{i},0,0,0\n" for i in range(1, 6)),
+     "row 4 has t=0.1 after t=0.1"),
+    ("t,x,y,z\n" + "".join(f"{i},0,0,0\n" for i in range(3)), "3 points, need at least 6"),
+    ("t,x,y,z\n" + "".join(f"{i},0,0,0\n" for i in range(6)) + "7,0,nan,0\n", "row 8 has a value that is not a finite"),
+    ("t,x,y,z\n" + "".join(f"{i},0,0\n" for i in range(6)), "row 2 has 3 columns"),
+    ("t,x,y,z\n0,0,0,0\nfoo,1,2,3\n", "row 3 is not four numbers"),
+])
+def test_load_points_errors_name_file_and_row(tmp_path, text, match):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match) as info:
+        load_points(path)
+    assert "bad.csv" in str(info.value)
+
+
+def test_load_points_missing_file_and_bad_spin(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        load_points(tmp_path / "none.csv")
+    path = tmp_path / "ok.csv"
+    write_points(synthesize_track(samples=10), path)
+    with pytest.raises(ValueError, match="data.spin must be three"):
+        load_points(path, spin=[1.0, 2.0])
+
+
+def test_split_at_impacts_finds_a_table_bounce():
+    flight = synthesize_track(velocity=(0.0, -5.0, -1.0), position=(0.0, 1.0, 0.3), samples=60, noise=0.0005)
+    z = flight.positions[:, 2]
+    first = int(np.argmax(z < 0))  # reflect below the table: a bounce with restitution 1
+    positions = flight.positions.copy()
+    positions[first:, 2] = np.abs(z[first:])
+    pieces = split_at_impacts(flight.__class__(flight.times, positions, flight.spin, "bounce"))
+    assert len(pieces) == 2 and pieces[1].meta["after"] == "bounce"
+    assert abs(len(pieces[0]) - first) <= 1
+
+
+def test_point_fit_recovers_drag_and_lift():
+    true = {("quadratic_drag", "drag_coefficient"): 0.45, ("magnus", "lift_coefficient"): 0.8}
+    tracks = [synthesize_track(["quadratic_drag", "magnus"], true, velocity=v, spin=w, seed=i, samples=50)
+              for i, (v, w) in enumerate([((4.0, 0.5, 2.0), (0.0, -100.0, 20.0)), ((-3.0, 2.0, 1.0), (50.0, 0.0, 80.0))])]
+    data = batch_tracks(tracks)
+    model = PointModel(["quadratic_drag", "magnus"], spin_known=True, **BALL)
+    problem = PointsProblem(data, **BALL)
+    fit = fit_tracks(model, data, problem.start(model, None, "all"))
+    cd, cl = fit.params[0, 6:].tolist()
+    std = torch.sqrt(torch.diagonal(fit.shared_covariance) * problem.noise_var)
+    assert abs(cd - 0.45) < 4 * float(std[0]) + 0.01 and abs(cl - 0.8) < 4 * float(std[1]) + 0.01
+    assert math.sqrt(fit.rss / fit.n_obs) < 1.2e-3  # at the 1 mm noise
+
+
+def test_fit_points_writes_result(tmp_path):
+    data = batch_tracks([synthesize_track(samples=30)])
+    content = fit_points(data, out_dir=tmp_path, **BALL)
+    assert json.loads((tmp_path / "result.json").read_text())["rms_m"] == pytest.approx(content["rms_m"])
+    assert content["rms_m"] < 1.5e-3 and (tmp_path / "residuals.png").stat().st_size > 0
+    assert np.allclose(content["params"]["position"], [0.0, 0.0, 0.3], atol=3e-3)
+
+
+@pytest.mark.skipif(not SPINDOE.exists(), reason="SpinDOE data not present")
+def test_spindoe_loader_and_discover_on_three_trajectories():
+    tracks = load_spindoe(SPINDOE, limit=4)
+    assert len(tracks) >= 3
+    tracks = tracks[:3]
+    for track in tracks:
+        assert track.meta["piece"] == 0 and track.spin.shape == (3,)
+        assert np.all(np.diff(track.times) > 0) and len(track) >= 8
+        assert track.positions[:, 2].min() > -0.05  # before the bounce: above the table
+    data = batch_tracks(tracks)
+    content = discover_points(data, candidates=["quadratic_drag", "linear_drag", "time_scale"], **BALL)
+    assert content["verdict"][:1] == ["quadratic_drag"]
+    cd = content["models"][1]["params"]["quadratic_drag"]["drag_coefficient"]["value"]
+    assert 0.3 < cd < 0.8
+
+
+def test_spindoe_loader_errors(tmp_path):
+    with pytest.raises(ValueError, match="no such file"):
+        load_spindoe(tmp_path / "none.zip")
+    bad = tmp_path / "bad.zip"
+    with zipfile.ZipFile(bad, "w") as archive:
+        archive.writestr("x/000.csv", "0;0;0;0\n")
+    with pytest.raises(ValueError, match="has no index.csv"):
+        load_spindoe(bad)

@@ -1,0 +1,520 @@
+"""Discover missing physics: forward selection over the effect library, judged against the noise.
+
+The engine (:func:`select_effects`) is generic. A problem supplies its estimated noise variance,
+its candidate effect names and one verb, ``fit(effects, warm) -> ModelFit``: fit the model with
+those effects (warm-started from ``warm``) on all data, and again on the data minus a held-out part
+to measure the prediction error there. The engine then
+
+1. fits the baseline (no effect);
+2. refits with each candidate added (an effect whose ``replaces`` names one in the model swaps it,
+   e.g. ``wind`` for ``quadratic_drag``, and is tried only once that one is in);
+3. scores each against the current model by the change in ``χ² = RSS / σ²`` (σ² the noise
+   variance estimated from the data, not from the fit), the BIC ``χ² + k ln n``, a likelihood-ratio
+   p-value and the held-out RMS;
+4. adds the winner if it beats the noise (ΔBIC above a threshold *and* a better held-out
+   prediction) with parameters its physics allows (a negative damping is something else in
+   disguise, never named as damping); if a look-alike is within the BIC margin of the winner the step names both as
+   indistinguishable and stops — the data cannot say which;
+5. repeats until nothing beats the noise.
+
+:func:`discover_points` is the pipeline for 3D point tracks (:mod:`torchfit.points`), writing
+``discover.json`` and before/after residual pictures. A video discover plugs in by implementing
+:class:`SelectionProblem` on silhouettes (see the module's README section in experiments/discover).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+from scipy import stats
+
+from .effects import EFFECTS
+from .points import (
+    POINT_EFFECTS,
+    PointData,
+    PointFit,
+    PointModel,
+    ballistic_start,
+    fit_tracks,
+)
+
+__all__ = [
+    "ModelFit",
+    "PointsProblem",
+    "Selection",
+    "SelectionProblem",
+    "SelectionSettings",
+    "Step",
+    "discover_points",
+    "estimate_noise",
+    "fit_points",
+    "locate_points",
+    "plot_residuals",
+    "select_effects",
+]
+
+
+@dataclass(frozen=True)
+class SelectionSettings:
+    """How forward selection decides.
+
+    Attributes:
+        min_delta_bic: a candidate must lower the BIC by more than this (10 = "very strong").
+        min_heldout_gain: ...and improve the held-out RMS by at least this fraction.
+        lookalike_margin: a passing candidate whose ΔBIC is within this of the winner's is a
+            look-alike: both are reported as indistinguishable and none is added.
+        max_effects: most effects added.
+        holdout: fraction of each track (its end) held out for the prediction error.
+    """
+
+    min_delta_bic: float = 10.0
+    min_heldout_gain: float = 0.02
+    lookalike_margin: float = 10.0
+    max_effects: int = 4
+    holdout: float = 0.25
+
+    def __post_init__(self):
+        if not 0 < self.holdout < 1:
+            raise ValueError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
+        if self.max_effects < 0:
+            raise ValueError(f"max_effects must be >= 0, got {self.max_effects}")
+
+
+@dataclass
+class ModelFit:
+    """One fitted model, as the engine sees it.
+
+    Attributes:
+        effects: the effect names in the model.
+        rss: sum of squared residuals on all data (data units², e.g. m²).
+        n_obs: number of scalar observations.
+        n_free: number of free parameters.
+        params: ``{effect: {parameter: {"value", "std", "unit"}}}`` in physical units.
+        fit_rms: RMS residual on all data.
+        heldout_rms: RMS prediction error on the held-out part after fitting the rest.
+        payload: the problem's own (warm start, residuals).
+    """
+
+    effects: tuple[str, ...]
+    rss: float
+    n_obs: int
+    n_free: int
+    params: dict
+    fit_rms: float
+    heldout_rms: float
+    payload: Any = None
+
+
+class SelectionProblem(Protocol):
+    """What :func:`select_effects` needs from a data set (points, or silhouettes)."""
+
+    noise_var: float
+    candidates: tuple[str, ...]
+
+    def fit(self, effects: tuple[str, ...], warm: ModelFit | None) -> ModelFit:
+        """Fit with these effects on all data and on the non-held-out part."""
+
+    # optional: ``applicable(effects) -> bool`` (False skips a combination the data cannot see)
+
+
+@dataclass
+class Step:
+    """One round of forward selection."""
+
+    base: tuple[str, ...]
+    scores: dict = field(default_factory=dict)  # candidate -> figures
+    added: str | None = None
+    indistinguishable: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Selection:
+    """The result: ``verdict`` (effects added, in order), the rounds, and every fitted model."""
+
+    verdict: list[str]
+    steps: list[Step]
+    fits: dict[tuple[str, ...], ModelFit]
+    noise_var: float
+
+
+def _criterion(fit: ModelFit, noise_var: float) -> tuple[float, float]:
+    chi2 = fit.rss / noise_var
+    return chi2, chi2 + fit.n_free * math.log(max(fit.n_obs, 2))
+
+
+def _with(base: tuple[str, ...], name: str) -> tuple[str, ...] | None:
+    """``base`` plus ``name`` (swapping what it replaces), or None if it adds nothing new.
+
+    An effect that refines another (``wind`` refines ``quadratic_drag``) is tried only once the
+    one it refines is in the model: with its extra freedom (a wind vector) it would otherwise
+    mimic other missing forces (a steady "wind" soaks up part of a Magnus lift).
+    """
+    if name in base or any(name in EFFECTS[e].replaces for e in base):
+        return None
+    if EFFECTS[name].replaces and not any(e in base for e in EFFECTS[name].replaces):
+        return None
+    return tuple(e for e in base if e not in EFFECTS[name].replaces) + (name,)
+
+
+def _outside_bounds(name: str, params: dict) -> list[str]:
+    """Parameters fitted more than 3 standard errors outside what the effect's physics allows
+    (e.g. a negative damping): such a fit is another effect in disguise, not this one."""
+    outside = []
+    for pname, (low, high) in EFFECTS[name].bounds.items():
+        entry = params.get(pname)
+        if entry is None or not isinstance(entry.get("value"), float):
+            continue
+        std = entry.get("std") or 0.0
+        std = std if math.isfinite(std) else 0.0
+        if entry["value"] + 3 * std < low or entry["value"] - 3 * std > high:
+            outside.append(f"{pname}={entry['value']:.4g} outside [{low}, {high}]")
+    return outside
+
+
+def select_effects(problem: SelectionProblem, settings: SelectionSettings = SelectionSettings(),
+                   progress: Callable[[str], None] | None = None) -> Selection:
+    """Forward selection of effects (module docstring), returning the :class:`Selection`."""
+    say = progress or (lambda message: None)
+    base = problem.fit((), None)
+    fits = {(): base}
+    say(f"baseline: rms {base.fit_rms:.4g}, held-out {base.heldout_rms:.4g}, "
+        f"noise {math.sqrt(problem.noise_var):.4g}")
+    verdict, steps = [], []
+    while len(verdict) < settings.max_effects:
+        step = Step(base=base.effects)
+        chi_base, bic_base = _criterion(base, problem.noise_var)
+        for name in problem.candidates:
+            effects = _with(base.effects, name)
+            if effects is None or not getattr(problem, "applicable", lambda e: True)(effects):
+                continue
+            fit = fits.get(effects) or problem.fit(effects, base)
+            fits[effects] = fit
+            chi, bic = _criterion(fit, problem.noise_var)
+            d_chi = chi_base - chi
+            d_k = max(fit.n_free - base.n_free, 1)
+            p_value = float(stats.chi2.sf(max(d_chi, 0.0), d_k))
+            gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
+            outside = _outside_bounds(name, fit.params.get(name, {}))
+            step.scores[name] = {
+                "model": list(effects), "delta_chi2": d_chi, "delta_dof": d_k, "delta_bic": bic_base - bic,
+                "p_value": p_value, "sigma": float(stats.norm.isf(max(p_value, 1e-300))) if p_value < 0.5 else 0.0,
+                "delta_loss": base.rss - fit.rss, "rms_before": base.fit_rms, "rms_after": fit.fit_rms,
+                "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
+                "heldout_gain": gain, "params": fit.params,
+                "unphysical": outside,
+                "passes": bool(bic_base - bic > settings.min_delta_bic and gain >= settings.min_heldout_gain
+                               and not outside),
+            }
+            say(f"  + {name}: ΔBIC {bic_base - bic:.1f}, held-out {base.heldout_rms:.4g} -> {fit.heldout_rms:.4g}")
+        steps.append(step)
+        passing = sorted((s["delta_bic"], n) for n, s in step.scores.items() if s["passes"])
+        if not passing:
+            break
+        best_bic, winner = passing[-1]
+        alike = [n for d, n in passing[:-1] if best_bic - d < settings.lookalike_margin]
+        if alike:
+            step.indistinguishable = [winner, *alike]
+            say(f"  {' / '.join(step.indistinguishable)}: indistinguishable on this data; stopping")
+            break
+        step.added = winner
+        verdict.append(winner)
+        base = fits[_with(base.effects, winner)]
+        say(f"added {winner}")
+    return Selection(verdict, steps, fits, problem.noise_var)
+
+
+def estimate_noise(data: PointData, window: int = 7, degree: int = 2) -> float:
+    """Measurement noise variance (m² per coordinate) from the data alone: residuals of a local
+    polynomial (degree 2) in every window of ``window`` consecutive samples, each window's
+    residual sum divided by its degrees of freedom. A flight's acceleration changes too slowly to
+    matter over a few samples, so what remains is noise.
+    """
+    sums, dofs = 0.0, 0
+    for b in range(data.batch):
+        n = int(data.weights[b].sum())
+        t = data.times[b, :n].numpy()
+        x = data.positions[b, :n].numpy()
+        for start in range(n - window + 1):
+            tt = t[start:start + window] - t[start]
+            design = np.vander(tt, degree + 1)
+            coef, *_ = np.linalg.lstsq(design, x[start:start + window], rcond=None)
+            sums += float(((x[start:start + window] - design @ coef) ** 2).sum())
+            dofs += 3 * (window - degree - 1)
+    if dofs == 0:
+        raise ValueError(f"tracks too short to estimate the noise: need at least {window} samples")
+    return sums / dofs
+
+
+class PointsProblem:
+    """:class:`SelectionProblem` for 3D point tracks: effect parameters shared by all tracks.
+
+    Args:
+        data: the tracks (:func:`torchfit.points.batch_tracks`).
+        area, mass, moment, g, up: the object and the world (:class:`torchfit.points.PointModel`).
+        candidates: effect names to try (those in ``POINT_EFFECTS``; ``magnus`` and
+            ``angular_drag`` need a spin — measured, or fitted per track for ``magnus``).
+        holdout: fraction of each track's end held out.
+        noise_var: m²; estimated from the data when ``None``.
+    """
+
+    def __init__(self, data: PointData, *, area: float, mass: float, moment: float, g: float = 9.81,
+                 up: int = 2, candidates: Sequence[str] = POINT_EFFECTS, holdout: float = 0.25,
+                 noise_var: float | None = None, step: float = 0.005, progress=None):
+        bad = [c for c in candidates if c not in POINT_EFFECTS]
+        if bad:
+            raise ValueError(f"candidates {bad} do not apply to point tracks; must be among {list(POINT_EFFECTS)}")
+        if data.spin is None:
+            candidates = [c for c in candidates if c != "angular_drag"]  # no spin, nothing to damp
+        self.data = data
+        self.candidates = tuple(candidates)
+        self.kw = {"area": area, "mass": mass, "moment": moment, "g": g, "up": up, "spin_known": data.spin is not None, "step": step}
+        self.train, self.test = data.split(1.0 - holdout)
+        self.noise_var = float(noise_var) if noise_var is not None else estimate_noise(data)
+        self.progress = progress
+
+    def applicable(self, effects: Sequence[str]) -> bool:
+        """Spin damping shows in a point track only through the Magnus force."""
+        return "angular_drag" not in effects or "magnus" in effects
+
+    def model(self, effects: Sequence[str]) -> PointModel:
+        return PointModel(effects, **self.kw)
+
+    def start(self, model: PointModel, warm: ModelFit | None, which: str) -> torch.Tensor:
+        values = {}
+        if warm is not None:
+            old: PointFit = warm.payload[which]
+            values = old.model.unpack(old.params)
+            if "quadratic_drag" in old.model.effects and "wind" in model.effects:
+                values[("wind", "drag_coefficient")] = values[("quadratic_drag", "drag_coefficient")]
+        else:
+            ballistic = ballistic_start(self.data if which == "all" else self.train, model.gravity)
+            values = {("", "p0"): ballistic[:, :3], ("", "v0"): ballistic[:, 3:]}
+        if model.fit_spin and ("magnus", "spin") not in values:
+            values[("magnus", "spin")] = torch.full((self.data.batch, 3), 1.0, dtype=torch.float64)
+        return model.pack(values, self.data.batch)
+
+    def fit(self, effects: tuple[str, ...], warm: ModelFit | None) -> ModelFit:
+        model = self.model(effects)
+        clock = time.perf_counter()
+        full = fit_tracks(model, self.data, self.start(model, warm, "all"), shared=True)
+        train = fit_tracks(model, self.train, self.start(model, warm, "train"), shared=True)
+        held = train.residual * self.test.weights.unsqueeze(-1)
+        heldout = math.sqrt(float((held ** 2).sum()) / max(3 * float(self.test.weights.sum()), 1.0))
+        if self.progress:
+            self.progress(f"    fit {list(effects)}: {time.perf_counter() - clock:.1f} s")
+        return ModelFit(effects, full.rss, full.n_obs, full.n_free, self.describe(full),
+                        math.sqrt(full.rss / full.n_obs), heldout, {"all": full, "train": train})
+
+    def describe(self, fit: PointFit) -> dict:
+        """Effect parameters with standard errors, in physical units.
+
+        The standard error scales the fit's covariance by the larger of the estimated noise
+        variance and the residual variance per degree of freedom (model misfit counts as noise).
+        """
+        variance = max(self.noise_var, fit.rss / max(fit.n_obs - fit.n_free, 1))
+        out: dict = {}
+        col = fit.model.n_local
+        for name, pname, size in fit.model.columns[fit.model._first_effect():]:
+            value = fit.params[0, col:col + size]
+            if fit.shared_covariance is not None:
+                start = col - fit.model.n_local
+                cov = fit.shared_covariance[start:start + size, start:start + size]
+                std = torch.sqrt(torch.diagonal(cov).clamp(min=0) * variance)
+            else:
+                std = torch.full((size,), float("nan"), dtype=torch.float64)
+            entry = {"value": value.tolist() if size == 3 else float(value),
+                     "std": std.tolist() if size == 3 else float(std),
+                     "unit": EFFECTS[name].units.get(pname, "")}
+            out.setdefault(name, {})[pname] = entry
+            col += size
+        if fit.model.fit_spin:
+            spins = fit.params[:, 6:9]
+            out.setdefault("magnus", {})["spin"] = {
+                "value": spins.tolist(), "unit": "rad/s per track (with lift_coefficient fixed to 1)"}
+        return out
+
+
+def locate_points(fit: PointFit, data: PointData, noise_var: float, bins: int = 4) -> dict:
+    """Where a model's residual lives: per world axis, per flight direction (along the velocity,
+    the normal within the vertical plane, the lateral), and per stretch of the flight, each as an
+    RMS in metres next to the noise's.
+    """
+    residual = fit.residual * data.weights.unsqueeze(-1)
+    weights = data.weights
+    count = float(weights.sum())
+    rms = lambda r, w: math.sqrt(float((r ** 2).sum()) / max(float(w.sum()), 1.0))
+    axes = {name: rms(residual[..., i], weights) for i, name in enumerate("xyz")}
+    predicted = data.positions - fit.residual
+    velocity = torch.gradient(predicted, dim=1)[0]
+    along = velocity / velocity.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    up = -fit.model.gravity / fit.model.gravity.norm()
+    lateral = torch.cross(along, up.expand_as(along), dim=-1)
+    lateral = lateral / lateral.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    normal = torch.cross(lateral, along, dim=-1)
+    directions = {name: rms((residual * d).sum(-1), weights)
+                  for name, d in (("along_velocity", along), ("vertical_normal", normal), ("lateral", lateral))}
+    progress = torch.cumsum(weights, -1) / weights.sum(-1, keepdim=True)
+    stretches = {}
+    for k in range(bins):
+        inside = weights * ((progress > k / bins) & (progress <= (k + 1) / bins)).to(weights)
+        stretches[f"{k / bins:.2f}-{(k + 1) / bins:.2f}"] = rms((residual ** 2).sum(-1).sqrt(), inside) / math.sqrt(3)
+    worst_axis = max(axes, key=axes.get)
+    worst_direction = max(directions, key=directions.get)
+    worst_stretch = max(stretches, key=stretches.get)
+    return {
+        "noise_rms_m": math.sqrt(noise_var), "rms_m": math.sqrt(float((residual ** 2).sum()) / (3 * count)),
+        "axis_rms_m": axes, "direction_rms_m": directions, "stretch_rms_m": stretches,
+        "summary": (f"largest on axis {worst_axis} ({axes[worst_axis] * 1e3:.2f} mm), direction {worst_direction} "
+                    f"({directions[worst_direction] * 1e3:.2f} mm), stretch {worst_stretch} of the flight; "
+                    f"noise {math.sqrt(noise_var) * 1e3:.2f} mm"),
+    }
+
+
+def plot_residuals(models: Sequence[tuple[str, PointFit]], data: PointData, path: Path, noise_var: float) -> None:
+    """Residual channels (x, y, z) against time, one column per model (before / after)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, len(models), figsize=(3.6 * len(models), 6.5), sharex=True, sharey=True,
+                             squeeze=False)
+    noise = math.sqrt(noise_var) * 1e3
+    alpha = 0.8 if data.batch <= 5 else max(0.08, 3.0 / data.batch)
+    for col, (label, fit) in enumerate(models):
+        for row in range(3):
+            ax = axes[row, col]
+            for b in range(data.batch):
+                n = int(data.weights[b].sum())
+                ax.plot(data.times[b, :n].numpy(), fit.residual[b, :n, row].numpy() * 1e3, lw=0.7, alpha=alpha)
+            ax.axhspan(-noise, noise, color="0.85", zorder=0)
+            ax.axhline(0, color="k", lw=0.5)
+            if row == 0:
+                ax.set_title(f"{label}\nrms {math.sqrt(fit.rss / fit.n_obs) * 1e3:.2f} mm", fontsize=9)
+            if col == 0:
+                ax.set_ylabel(f"{'xyz'[row]} residual (mm)")
+            if row == 2:
+                ax.set_xlabel("time (s)")
+    fig.suptitle(f"observed - fitted position; grey band: ±noise ({noise:.2f} mm)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def discover_points(data: PointData, *, area: float, mass: float, moment: float, g: float = 9.81, up: int = 2,
+                    candidates: Sequence[str] = POINT_EFFECTS, settings: SelectionSettings = SelectionSettings(),
+                    out_dir: Path | None = None, progress=None, step: float = 0.005) -> dict:
+    """Discover missing physics in 3D point tracks; write ``discover.json`` and residual plots.
+
+    Args:
+        data: the tracks.
+        area, mass, moment: the object's reference area (m²), mass (kg), moment of inertia (kg m²).
+        g: m/s², along ``-up``.
+        candidates: effects to try.
+        settings: the selection rules.
+        out_dir: where to write ``discover.json`` and ``residuals.png`` (nothing written if None).
+
+    Returns:
+        The ``discover.json`` content (DESIGN.md): ``verdict``, ``effects``, ``located`` and more.
+    """
+    clock = time.perf_counter()
+    problem = PointsProblem(data, area=area, mass=mass, moment=moment, g=g, up=up, candidates=candidates,
+                            holdout=settings.holdout, step=step)
+    selection = select_effects(problem, settings, progress)
+    sequence = [()]
+    for name in selection.verdict:
+        sequence.append(_with(sequence[-1], name))
+    chain = [selection.fits[m] for m in sequence]
+    effects = {}
+    for step_ in selection.steps:
+        for name, score in step_.scores.items():
+            effects.setdefault(name, []).append({"base": list(step_.base), **score})
+    content = {
+        "verdict": list(selection.verdict),
+        "effects": effects,
+        "located": locate_points(chain[0].payload["all"], data, problem.noise_var),
+        "located_after": locate_points(chain[-1].payload["all"], data, problem.noise_var),
+        "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
+        "noise_rms_m": math.sqrt(problem.noise_var),
+        "models": [{"effects": list(f.effects), "rms_m": f.fit_rms, "heldout_rms_m": f.heldout_rms,
+                    "bic": _criterion(f, problem.noise_var)[1], "n_obs": f.n_obs, "n_free": f.n_free,
+                    "params": f.params} for f in chain],
+        "tracks": len(data.names),
+        "samples": int(data.weights.sum()),
+        "settings": asdict(settings),
+        "candidates": list(problem.candidates),
+        "seconds": time.perf_counter() - clock,
+    }
+    content = _jsonable(content)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
+        labels = ["baseline"] + [f"+ {name}" for name in selection.verdict]
+        plot_residuals([(label, f.payload["all"]) for label, f in zip(labels, chain)], data,
+                       out_dir / "residuals.png", problem.noise_var)
+        content["figures"] = ["discover.json", "residuals.png"]
+    return content
+
+
+def fit_points(data: PointData, *, effects: Sequence[str] = (), area: float, mass: float, moment: float,
+               g: float = 9.81, up: int = 2, out_dir: Path | None = None, step: float = 0.005) -> dict:
+    """Fit a point-mass flight (gravity plus ``effects``) to 3D tracks; write ``result.json`` and
+    ``residuals.png`` into ``out_dir``.
+
+    Returns:
+        ``{"params": {"position", "velocity", <effect>: {...}}, "per_frame": {"time", "observed",
+        "fitted", "residual"}, "rms_m", "noise_rms_m", "loss"}`` (per track lists when B > 1).
+    """
+    problem = PointsProblem(data, area=area, mass=mass, moment=moment, g=g, up=up, candidates=(), step=step)
+    model = problem.model(effects)
+    start = problem.start(model, None, "all")
+    if model.n_params > model.n_local:  # effects start from their classes' defaults, not from zero
+        defaults = {(name, p): getattr(problem.model([name]).modules[name], p).detach()
+                    for name in effects for p in EFFECTS[name].null_params}
+        start = model.pack({**model.unpack(start), **defaults}, data.batch)
+    fit = fit_tracks(model, data, start, shared=True)
+    values = model.unpack(fit.params)
+    per_frame = []
+    for b in range(data.batch):
+        n = int(data.weights[b].sum())
+        fitted = data.positions[b, :n] - fit.residual[b, :n]
+        per_frame.append({"time": data.times[b, :n].tolist(), "observed": data.positions[b, :n].tolist(),
+                          "fitted": fitted.tolist(), "residual": fit.residual[b, :n].tolist()})
+    one = data.batch == 1
+    content = {
+        "params": {"position": values[("", "p0")][0].tolist() if one else values[("", "p0")].tolist(),
+                   "velocity": values[("", "v0")][0].tolist() if one else values[("", "v0")].tolist(),
+                   "gravity": model.gravity.tolist(), **problem.describe(fit)},
+        "per_frame": per_frame[0] if one else per_frame,
+        "loss": fit.rss, "rms_m": math.sqrt(fit.rss / fit.n_obs), "noise_rms_m": math.sqrt(problem.noise_var),
+        "effects": list(effects), "tracks": list(data.names),
+    }
+    content = _jsonable(content)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "result.json").write_text(json.dumps(content, indent=1))
+        plot_residuals([("fit" + "".join(f" + {e}" for e in effects), fit)], data, out_dir / "residuals.png",
+                       problem.noise_var)
+    return content
