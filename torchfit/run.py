@@ -23,9 +23,9 @@ from .camera import Camera
 from .dynamics import RigidBody
 from .paper import basin as paper_basin
 from .paper import kalman as paper_kalman
+from .paper import roll as paper_roll
 from .paper import predict as paper_predict
 from .paper import tshape_fig3 as paper_tshape
-from .paper import roll as paper_roll
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
 from .search import FitResult, Problem, SearchSettings, fit
@@ -338,9 +338,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
 TASKS = {
     "fit": run_fit,
     "discover": run_discover,
+    "paper_basin": lambda cfg, out: paper_basin.main(out, **params(cfg), **context(cfg)),
     "paper_tshape": lambda cfg, out: paper_tshape.main(out, **params(cfg), **context(cfg)),
     "paper_predict": lambda cfg, out: paper_predict.main(out, **params(cfg), **context(cfg)),
-    "paper_basin": lambda cfg, out: paper_basin.main(out, **params(cfg), **context(cfg)),
     "paper_kalman": lambda cfg, out: paper_kalman.main(out, **params(cfg), **context(cfg)),
     "paper_roll": lambda cfg, out: paper_roll.main(out, **params(cfg), **context(cfg)),
 }
