@@ -23,8 +23,8 @@ from .camera import Camera
 from .dynamics import RigidBody
 from .paper import basin as paper_basin
 from .paper import kalman as paper_kalman
-from .paper import roll as paper_roll
 from .paper import predict as paper_predict
+from .paper import roll as paper_roll
 from .paper import tshape_fig3 as paper_tshape
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
