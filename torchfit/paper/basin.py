@@ -17,35 +17,26 @@ import json
 import math
 import statistics
 import time
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ..camera import Camera
 from ..dynamics import RigidBody, integrate
 from ..report import score_against_truth
 from ..rotation import axis_angle_to_quat, quat_multiply
 from ..search import SearchSettings, fit
-from ..shape import load_shape
 from ..video import load_observation
+from ._recording import load_recording
 from .method import PaperSettings, paper_fit
 
 __all__ = ["QUICK_SEARCH", "main"]
 
-RECORDINGS = ("tshape", "tshape_intermediate", "box_fast", "cylinder", "tshape_small")
 
 # a very small search for the quick mode (tests): torchfit/configs/search/quick.yaml, shrunk
 QUICK_SEARCH = {"orientations": 200, "keep_per_anchor": 4, "anchor_steps": 6, "seed_frames": 6, "survivors": 6,
                 "stages": ((1.0, 24, 1.0, 8, 1.0),), "final": 2, "polish_iterations": 4, "polish_crop": 32,
                 "polish_sigma": 0.8}
-
-
-def _folder(name: str) -> Path:
-    if name not in RECORDINGS:
-        raise ValueError(f'recording "{name}" is not shipped; must be one of {list(RECORDINGS)}')
-    return Path(str(resources.files("torchfit").joinpath("recordings", name)))
 
 
 def _truth_at(truth: dict, problem, span: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -120,12 +111,9 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
     rng = np.random.default_rng(seed)
     trials, torchfit_rows = [], []
     for name in recordings:
-        folder = _folder(name)
-        truth_path = folder / "truth.json"
-        truth = json.loads(truth_path.read_text())
-        shape = load_shape(str(folder / "mesh.obj"), density=float(truth["object"]["density"]))
-        camera = Camera.from_file(folder / "camera.json")
-        observation = load_observation(str(folder / "video.mp4"), camera=camera)
+        rec = load_recording(name)
+        truth_path, truth, shape, camera = rec.folder / "truth.json", rec.truth, rec.shape, rec.camera
+        observation = load_observation(str(rec.video), camera=camera)
         problem, span = build_problem(observation, shape, camera, g=float(truth["g"]), dtype=dtype,
                                       device=torch.device(device))
         say(f"{name}: torchfit from no guess ({len(span)} frames)")
