@@ -79,9 +79,9 @@ def test_cli_points_fit_and_discover(tmp_path):
     assert json.loads((tmp_path / "d" / "discover.json").read_text())["verdict"] == ["quadratic_drag"]
 
 
-def test_discover_on_video_is_a_clear_error(tmp_path):
-    cfg = _compose(["experiment=discover", "data.points=null", "data.video=some.mp4"])
-    with pytest.raises(ConfigError, match="discover on video is not implemented yet"):
+def test_discover_without_data_is_a_clear_error(tmp_path):
+    cfg = _compose(["experiment=discover", "data.points=null"])
+    with pytest.raises(ConfigError, match="give data.video=<recording> or data.points="):
         run(cfg, tmp_path)
 
 

@@ -21,7 +21,7 @@ from torchfit.paper.predict import (
     step_size,
 )
 from torchfit.rotation import matrix_to_quat
-from torchfit.search import Candidates, _candidate_losses
+from torchfit.search import Candidates, candidate_losses
 
 
 def _small_problem(frames=6):
@@ -50,7 +50,7 @@ def test_residuals_square_to_the_search_loss():
     frames = len(problem.times)
     res = silhouette_residuals(problem, cands, crop=24, sigma=1.0, step=step_size(problem, cands, frames))
     assert res.shape == (1, frames * (24 * 24 + 2))
-    loss = _candidate_losses(problem, cands, frames, 24, 1.0)
+    loss = candidate_losses(problem, cands, frames, 24, 1.0)
     assert float(res.square().sum()) == pytest.approx(float(loss[0]), rel=1e-10)
 
 

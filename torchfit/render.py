@@ -22,6 +22,7 @@ backward pass, chunk by chunk, so memory stays at the size of the output.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,12 +34,12 @@ from .camera import Camera, project
 __all__ = [
     "RenderMesh",
     "contour_lines",
-    "window_lines",
     "coverage_from_lines",
-    "render_silhouettes",
     "crop_windows",
     "full_window",
+    "render_silhouettes",
     "set_compile",
+    "window_lines",
 ]
 
 _FAR = 1.0e4  # a masked edge line's offset, crop pixels: never the maximum
@@ -93,7 +94,8 @@ class RenderMesh:
         )
 
 
-def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor) -> Tensor:
+def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
+                  distort: Callable[[Tensor], Tensor] | None = None) -> Tensor:
     """Edge lines of each convex part's silhouette, in image pixels.
 
     Args:
@@ -101,6 +103,10 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor) 
         camera: intrinsics.
         rot: (N, 3, 3) rotations ``R`` (mesh to camera).
         trans: (N, 3) translations ``t``, metres.
+        distort: optional lens model on normalised image coordinates, (N, V, 2) -> (N, V, 2)
+            (e.g. :meth:`torchfit.effects.LensDistortion.distort`). The vertices are distorted
+            and the edges stay straight: exact at the vertices, and for an object a small
+            fraction of the image wide the edges' curvature is far below a pixel.
 
     Returns:
         (N, P, K, 3) lines ``(a, b, c)``: ``a u + b v + c`` is the signed distance in pixels
@@ -112,6 +118,8 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor) 
     pixels, in_front = project(camera, points)  # (N, V, 2), (N, V)
     centres = torch.einsum("nij,pj->npi", rot, mesh.centroids) + trans.unsqueeze(1)
     centre_px, _ = project(camera, centres)  # (N, P, 2)
+    if distort is not None:
+        pixels, centre_px = (_distort_pixels(camera, distort, p) for p in (pixels, centre_px))
     # a face faces the camera (at the origin) when n_w · x_w < 0; in mesh coordinates that is
     # o + n · (Rᵀ t) < 0
     trans_body = torch.einsum("nji,nj->ni", rot, trans)  # (N, 3)
@@ -141,6 +149,13 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor) 
     first = torch.zeros_like(keep)
     first[..., 0] = True
     return torch.where((behind.unsqueeze(-1) & first).unsqueeze(-1), hide, lines)
+
+
+def _distort_pixels(camera: Camera, distort: Callable[[Tensor], Tensor], pixels: Tensor) -> Tensor:
+    """(N, V, 2) pinhole pixels -> (N, V, 2) pixels through ``distort`` on normalised coordinates."""
+    focal = pixels.new_tensor([camera.fx, camera.fy])
+    centre = pixels.new_tensor([camera.cx, camera.cy])
+    return distort((pixels - centre) / focal) * focal + centre
 
 
 def window_lines(lines: Tensor, windows: Tensor) -> Tensor:
@@ -290,6 +305,7 @@ def render_silhouettes(
     size: tuple[int, int],
     sigma: float | None,
     budget: int = 1 << 21,
+    distort: Callable[[Tensor], Tensor] | None = None,
 ) -> Tensor:
     """Soft silhouettes by sigmoid edges of a shape's convex parts, one crop window per image.
 
@@ -304,6 +320,8 @@ def render_silhouettes(
         sigma: edge width in crop pixels, coverage = sigmoid(-d / sigma); ``None`` renders hard
             (binary) silhouettes without gradients.
         budget: bounds the memory of the pixel loop (elements per chunk).
+        distort: optional lens model on normalised coordinates (see :func:`contour_lines`);
+            it sees all B·T poses at once, so its parameters must be shared by the batch.
 
     Returns:
         (B, T, H, W) coverage in [0, 1].
@@ -319,7 +337,7 @@ def render_silhouettes(
         raise ValueError(f"size must be (H, W) with positive entries, got {size}")
     if sigma is not None and not (math.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be a positive edge width in pixels or None, got {sigma}")
-    lines = contour_lines(mesh, camera, rot.reshape(-1, 3, 3), trans.reshape(-1, 3))
+    lines = contour_lines(mesh, camera, rot.reshape(-1, 3, 3), trans.reshape(-1, 3), distort)
     lines = window_lines(lines, windows.reshape(-1, 3))
     coverage = coverage_from_lines(lines, size[0], size[1], sigma=sigma, budget=budget)
     return coverage.reshape(batch, frames, size[0], size[1])

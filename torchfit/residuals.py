@@ -20,7 +20,7 @@ import torch
 
 from .losses import mask_moments
 
-__all__ = ["CHANNELS", "Residuals", "locate", "residual_channels"]
+__all__ = ["CHANNELS", "Residuals", "channel_values", "locate", "noise_floor", "residual_channels", "systematic_floor"]
 
 CHANNELS = ("centroid_x", "centroid_y", "scale", "shape")
 _UNITS = {"centroid_x": "px", "centroid_y": "px", "scale": "relative", "shape": "relative"}
@@ -65,38 +65,66 @@ def residual_channels(observed: np.ndarray | torch.Tensor, fitted: np.ndarray | 
     if observed.shape != fitted.shape or observed.ndim != 3:
         raise ValueError(f"observed and fitted must both be (T, H, W), got {tuple(observed.shape)} "
                          f"and {tuple(fitted.shape)}")
-    area_o, centre_o, cov_o = mask_moments(observed)
-    area_f, centre_f, cov_f = mask_moments(fitted)
-    visible = ((area_o > 0) & (area_f > 0)).numpy()
+    moments_o, moments_f = mask_moments(observed), mask_moments(fitted)
+    visible = ((moments_o[0] > 0) & (moments_f[0] > 0)).numpy()
     used = visible if used is None else np.asarray(used, bool) & visible
-    safe_o, safe_f = area_o.clamp(min=1.0), area_f.clamp(min=1.0)
-    # second moments per unit area: shape without size
-    shape_o, shape_f = cov_o / safe_o[:, None, None], cov_f / safe_f[:, None, None]
-    _, vectors = torch.linalg.eigh(shape_o)
-    long_axis = vectors[..., :, -1]  # (T, 2) the observed outline's long axis
-    elongation = lambda s: torch.einsum("ti,tij,tj->t", long_axis, s, long_axis)
-    values = {
-        "centroid_x": (centre_o[:, 0] - centre_f[:, 0]).numpy(),
-        "centroid_y": (centre_o[:, 1] - centre_f[:, 1]).numpy(),
-        "scale": (0.5 * torch.log(safe_o / safe_f)).numpy(),
-        "shape": (elongation(shape_o) / elongation(shape_f).clamp(min=1e-9) - 1.0).numpy(),
-    }
-    values = {name: np.where(used, value, np.nan) for name, value in values.items()}
-    # systematic floor: an edge shifted by edge_px moves the centroid by up to edge_px, the size
-    # by edge_px * perimeter / (2 area) and the normalised moments by about twice that
-    grid = observed.numpy() > 0.5
-    inner = grid.copy()
-    inner[:, 1:-1, 1:-1] &= grid[:, :-2, 1:-1] & grid[:, 2:, 1:-1] & grid[:, 1:-1, :-2] & grid[:, 1:-1, 2:]
-    perimeter = (grid & ~inner).sum((1, 2))
-    ratio = float(np.median(perimeter[used] / area_o.numpy()[used])) if used.any() else 0.0
-    systematic = {"centroid_x": edge_px, "centroid_y": edge_px, "scale": edge_px * ratio / 2,
-                  "shape": edge_px * ratio}
-    noise = {name: float(np.hypot(_noise_floor(value[used]), systematic[name]))
+    values = {name: np.where(used, value.numpy(), np.nan)
+              for name, value in channel_values(moments_o, moments_f).items()}
+    systematic = systematic_floor(observed.numpy() > 0.5, used, edge_px)
+    noise = {name: float(np.hypot(noise_floor(value[used]), systematic[name]))
              for name, value in values.items()}
     return Residuals(np.asarray(times, float), used, values, noise)
 
 
-def _noise_floor(values: np.ndarray) -> float:
+def channel_values(observed: tuple, fitted: tuple) -> dict:
+    """The four channels from silhouette moments (differentiable in ``fitted``).
+
+    Args:
+        observed, fitted: ``(area (..., ), centroid (..., 2), covariance (..., 2, 2))`` in image
+            pixels, as :func:`torchfit.losses.mask_moments` returns them; any batch shape.
+
+    Returns:
+        channel name -> (...) residual, observed minus fitted (see :class:`Residuals`).
+    """
+    area_o, centre_o, cov_o = observed
+    area_f, centre_f, cov_f = fitted
+    safe_o, safe_f = area_o.clamp(min=1.0), area_f.clamp(min=1.0)
+    # second moments per unit area: shape without size
+    shape_o, shape_f = cov_o / safe_o[..., None, None], cov_f / safe_f[..., None, None]
+    _, vectors = torch.linalg.eigh(shape_o)
+    long_axis = vectors[..., :, -1]  # (..., 2) the observed outline's long axis
+
+    def elongation(moments):
+        return torch.einsum("...i,...ij,...j->...", long_axis, moments, long_axis)
+
+    return {
+        "centroid_x": centre_o[..., 0] - centre_f[..., 0],
+        "centroid_y": centre_o[..., 1] - centre_f[..., 1],
+        "scale": 0.5 * torch.log(safe_o / safe_f),
+        "shape": elongation(shape_o) / elongation(shape_f).clamp(min=1e-9) - 1.0,
+    }
+
+
+def systematic_floor(observed: np.ndarray, used: np.ndarray, edge_px: float = 0.5) -> dict:
+    """Per channel, the residual an edge shifted by ``edge_px`` pixels makes.
+
+    Such an edge moves the centroid by up to ``edge_px``, the size by ``edge_px * perimeter /
+    (2 area)`` and the normalised moments by about twice that.
+
+    Args:
+        observed: (T, H, W) bool observed masks.
+        used: (T,) frames to use.
+    """
+    inner = observed.copy()
+    inner[:, 1:-1, 1:-1] &= observed[:, :-2, 1:-1] & observed[:, 2:, 1:-1] & observed[:, 1:-1, :-2] \
+        & observed[:, 1:-1, 2:]
+    perimeter = (observed & ~inner).sum((1, 2))
+    area = observed.sum((1, 2))
+    ratio = float(np.median(perimeter[used] / np.maximum(area[used], 1))) if used.any() else 0.0
+    return {"centroid_x": edge_px, "centroid_y": edge_px, "scale": edge_px * ratio / 2, "shape": edge_px * ratio}
+
+
+def noise_floor(values: np.ndarray) -> float:
     """Robust standard deviation of the frame-to-frame jitter (a smooth trend does not count).
 
     Second differences of white noise of variance s^2 have variance 6 s^2, and remove a trend

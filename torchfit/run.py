@@ -324,13 +324,50 @@ def run_points(cfg: DictConfig, out_dir: Path, *, discover: bool) -> dict:
 
 
 def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
-    """``task: discover``: find the physics a fit leaves out (3D points; video is not done yet)."""
-    if cfg.data.get("points"):
-        return run_points(cfg, out_dir, discover=True)
-    if cfg.data.get("video"):
-        raise ConfigError("discover on video is not implemented yet; give data.points=<t,x,y,z csv> "
-                          "(video discover will plug into torchfit.discover.select_effects)")
-    raise ConfigError("data.points: give a t,x,y,z CSV to discover on")
+    """``task: discover``: find the physics a fit leaves out, in a video (``data.video``) or in 3D
+    points (``data.points``); writes discover.json, residuals.png, report.txt (and, for video, the
+    overlay video of the improved fit)."""
+    if not cfg.data.get("video"):
+        if cfg.data.get("points"):
+            return run_points(cfg, out_dir, discover=True)
+        raise ConfigError("discover: give data.video=<recording> or data.points=<t,x,y,z csv>")
+    from .discover_video import VIDEO_EFFECTS, discover_video
+
+    ctx = context(cfg)
+    settings = params(cfg)
+    quick = bool(settings.pop("quick", False))
+    settings.pop("candidates", None)  # the points' list
+    candidates = settings.pop("video_candidates", None) or list(VIDEO_EFFECTS)
+    iterations = int(settings.pop("iterations", 100))
+    if quick:
+        candidates, iterations = candidates[:1], 3
+    bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
+    if bad:
+        raise ConfigError(f"params.video_candidates: {bad} cannot be discovered from video; "
+                          f"choose from {list(VIDEO_EFFECTS)}")
+    try:
+        rules = discovery.SelectionSettings(**settings)
+    except TypeError as err:
+        raise ConfigError(f"params: {err}") from None
+    data = cfg.data
+    if data.fps is not None and not float(data.fps) > 0:
+        raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
+    shape = build_shape(cfg.object)
+    camera = build_camera(cfg.camera, _video_size(str(data.video)))
+    observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
+                                   start=int(data.start), stop=data.stop,
+                                   cache_dir=(out_dir / "cache") if data.cache else None,
+                                   settings=SegmentationSettings(method=str(data.segmentation.method)))
+    problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
+                                  device=ctx["device"])
+    truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None
+    summary = discover_video(problem, observation, span, candidates=candidates, settings=rules,
+                             search=_search_settings(cfg.search), iterations=iterations, out_dir=out_dir,
+                             overlay=bool(cfg.outputs.overlay_video), truth=truth, progress=ctx["progress"])
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    print("\n".join(summary["report"]))
+    print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
+    return summary
 
 
 # Task name (config key ``task``) -> function(cfg, out_dir) -> summary dict. Experiments add

@@ -21,20 +21,29 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable
 
 import torch
 from torch import Tensor
+from torch.nn.utils import parametrize
 
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
+from .effects import Effect, apply_effects
 from .losses import mask_moments, sample_targets, silhouette_loss
 from .render import RenderMesh, crop_windows, render_silhouettes
-from .rotation import axis_angle_to_quat, matrix_to_quat, quat_multiply, quat_to_matrix, rotation_angle
+from .rotation import (
+    axis_angle_to_quat,
+    matrix_to_quat,
+    quat_multiply,
+    quat_to_matrix,
+    rotation_angle,
+)
 from .shape import Shape
 
-__all__ = ["SearchSettings", "Problem", "Candidates", "FitResult", "fit", "so3_grid", "estimate_track"]
+__all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "candidate_losses", "candidate_silhouettes",
+           "estimate_track", "fit", "refine", "so3_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -358,18 +367,32 @@ def _log_rotation(rot: Tensor) -> Tensor:
 # stages 3-5
 
 
-def _candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float) -> Tensor:
-    """(B,) silhouette loss of the candidates over the first ``frames`` frames."""
-    times = problem.times[:frames]
-    spin = float(cands.omega.detach().norm(dim=-1).max()) if len(cands) else 0.0
-    frame_dt = float(times[1] - times[0]) if len(times) > 1 else 1.0
-    step = min(frame_dt, max(problem.max_rotation_step / max(spin, 1e-6), frame_dt / 8))
-    traj = integrate(cands.state(problem.body), times, problem.body, cands.gravity(problem.g), step_size=step)
-    windows = problem.windows(crop)[:frames].expand(len(cands), frames, 3)
-    cover = render_silhouettes(problem.mesh, problem.camera, traj.rot, traj.position, windows,
-                               size=(crop, crop), sigma=sigma)
+def candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float,
+                     effects: Sequence[Effect] = ()) -> Tensor:
+    """(B,) silhouette loss of the candidates over the first ``frames`` frames.
+
+    ``effects`` (:mod:`torchfit.effects`, parameters shared by the batch) change the flight:
+    forces enter the ODE, body effects the mass properties, clock effects the sample times and
+    camera effects (``lens_distortion``) the projection.
+    """
+    cover = candidate_silhouettes(problem, cands, frames, crop, sigma, effects)
     loss = silhouette_loss(cover, problem.targets(crop)[:frames], problem.used[:frames].to(cover.dtype))
     return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, float("inf")))
+
+
+def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float | None,
+                          effects: Sequence[Effect] = ()) -> Tensor:
+    """(B, frames, crop, crop) soft silhouettes of the candidates in the frames' crop windows."""
+    body, times, forces = apply_effects(effects, problem.body, problem.times[:frames])
+    spin = float(cands.omega.detach().norm(dim=-1).max()) if len(cands) else 0.0
+    frame_dt = float(times[1].detach() - times[0].detach()) if len(times) > 1 else 1.0
+    step = min(frame_dt, max(problem.max_rotation_step / max(spin, 1e-6), frame_dt / 8))
+    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step)
+    windows = problem.windows(crop)[:frames].expand(len(cands), frames, 3)
+    lens = [e for e in effects if e.kind == "camera"]
+    distort = lens[0].distort if lens else None
+    return render_silhouettes(problem.mesh, problem.camera, traj.rot, traj.position, windows,
+                              size=(crop, crop), sigma=sigma, distort=distort)
 
 
 def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float, steps: int,
@@ -382,7 +405,7 @@ def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: fl
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1), eta_min=0.0)
     loss = None
     for step in range(steps):
-        loss = _candidate_losses(problem, cands, frames, crop, sigma)
+        loss = candidate_losses(problem, cands, frames, crop, sigma)
         finite = torch.isfinite(loss)
         opt.zero_grad()
         loss[finite].sum().backward()
@@ -395,44 +418,88 @@ def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: fl
         if progress and (step % 20 == 0 or step == steps - 1):
             progress(f"{label}: step {step + 1}/{steps}, {len(cands)} candidates, best loss {float(loss.detach().min()):.5f}")
     with torch.no_grad():
-        return _candidate_losses(problem, cands, frames, crop, sigma)
+        return candidate_losses(problem, cands, frames, crop, sigma)
 
 
-_SCALES = {"delta": 0.05, "com": 0.01, "com_velocity": 0.05, "omega": 0.5, "gravity_angles": 0.02}
+SCALES = {"delta": 0.05, "com": 0.01, "com_velocity": 0.05, "omega": 0.5, "gravity_angles": 0.02}
 
 
-def _polish(problem: Problem, cands: Candidates, crop: int, sigma: float, iterations: int,
-            curve: list) -> Tensor:
-    """L-BFGS on all frames from the Adam result: near the optimum the loss is smooth and a
-    quasi-Newton step converges in tens of iterations where Adam needs hundreds. Parameters
-    are scaled to comparable units; the candidates' losses are independent, so their sum is
-    minimised jointly."""
+def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iterations: int,
+           effects: Sequence[Effect] = (), effect_scales: dict[str, float] | None = None,
+           curve: list | None = None) -> Tensor:
+    """Local refinement of candidates (and of the effects' parameters) on all frames, in place.
+
+    L-BFGS from the current values: near an optimum the loss is smooth and a quasi-Newton step
+    converges in tens of iterations where Adam needs hundreds. Parameters are scaled to
+    comparable units (``SCALES``; ``effect_scales`` maps an effect parameter's name to its
+    scale, default 0.1). The candidates' losses are independent, so their sum is minimised
+    jointly; effect parameters are shared by the batch (refine one candidate to fit them).
+
+    Args:
+        problem: the observation (its ``used`` frames count).
+        cands: (B,) candidates, changed in place.
+        crop, sigma: the render's crop size and edge width (crop pixels).
+        iterations: L-BFGS iterations.
+        effects: physics added to the model (their parameters are set to the optimum).
+        effect_scales: parameter name -> typical size, in the parameter's unit.
+        curve: the best loss after every evaluation is appended.
+
+    Returns:
+        (B,) losses at the refined values.
+    """
     frames = len(problem.times)
-    start = {name: getattr(cands, name).detach().clone() for name in _SCALES}
-    unit = torch.zeros(len(cands), sum(getattr(cands, n).shape[1] for n in _SCALES),
-                       dtype=cands.com.dtype, device=cands.com.device, requires_grad=True)
-    sizes = [getattr(cands, n).shape[1] for n in _SCALES]
+    curve = [] if curve is None else curve
+    scales = effect_scales or {}
+    start = {name: getattr(cands, name).detach().clone() for name in SCALES}
+    sizes = [getattr(cands, n).shape[1] for n in SCALES]
+    unit = torch.zeros(len(cands), sum(sizes), dtype=cands.com.dtype, device=cands.com.device,
+                       requires_grad=True)
+    # each effect parameter p becomes p0 + scale * u with u (starting at 0) the optimised leaf
+    scaled = [(effect, name) for effect in effects for name, _ in list(effect.named_parameters())]
+    for effect, name in scaled:
+        value = getattr(effect, name).detach().clone()
+        parametrize.register_parametrization(effect, name, _Affine(value, scales.get(name, 0.1)))
+    leaves = [unit] + [effect.parametrizations[name].original for effect, name in scaled]
 
     def assign(vector: Tensor) -> None:
-        for (name, scale), part in zip(_SCALES.items(), vector.split(sizes, dim=1)):
+        for (name, scale), part in zip(SCALES.items(), vector.split(sizes, dim=1)):
             setattr(cands, name, start[name] + scale * part)
 
-    opt = torch.optim.LBFGS([unit], lr=1.0, max_iter=iterations, history_size=20,
+    opt = torch.optim.LBFGS(leaves, lr=1.0, max_iter=iterations, history_size=20,
                             line_search_fn="strong_wolfe", tolerance_grad=1e-9, tolerance_change=1e-12)
 
     def closure() -> Tensor:
         opt.zero_grad()
         assign(unit)
-        loss = _candidate_losses(problem, cands, frames, crop, sigma)
+        loss = candidate_losses(problem, cands, frames, crop, sigma, effects)
         total = torch.where(torch.isfinite(loss), loss, torch.zeros_like(loss)).sum()
         total.backward()
         curve.append(float(loss.detach().min()))
         return total
 
-    opt.step(closure)
+    try:
+        opt.step(closure)
+    finally:
+        for effect, name in scaled:
+            parametrize.remove_parametrizations(effect, name, leave_parametrized=True)
     with torch.no_grad():
         assign(unit.detach())
-        return _candidate_losses(problem, cands, frames, crop, sigma)
+        return candidate_losses(problem, cands, frames, crop, sigma, effects)
+
+
+class _Affine(torch.nn.Module):
+    """``p = start + scale * u``: optimise an effect parameter in units of its typical size."""
+
+    def __init__(self, start: Tensor, scale: float):
+        super().__init__()
+        self.register_buffer("start", start)
+        self.scale = scale
+
+    def forward(self, unit: Tensor) -> Tensor:
+        return self.start + self.scale * unit
+
+    def right_inverse(self, value: Tensor) -> Tensor:
+        return (value - self.start) / self.scale
 
 
 def _spread(quat: Tensor, symmetries: Tensor, min_angle: float, limit: int) -> list[int]:
@@ -524,7 +591,7 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
                        torch.tensor([track["tilt"], track["roll"]], dtype=dtype).expand(count, 2).clone())
     seed_frames = min(n_frames, max(settings.seed_frames, second + 3))
     with torch.no_grad():
-        scores = torch.cat([_candidate_losses(problem, seeds.select(idx), seed_frames, 24, 1.5)
+        scores = torch.cat([candidate_losses(problem, seeds.select(idx), seed_frames, 24, 1.5)
                             for idx in torch.arange(count).split(512)])
     order = torch.argsort(scores)[: settings.survivors]
     cands = seeds.select(order)
@@ -554,7 +621,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     # stage 5: distinct minima (modulo symmetry), polished, best first
     cands, losses = _distinct(cands, losses, symmetries, settings.final)
     clock = time.perf_counter()
-    losses = _polish(problem, cands, settings.polish_crop, settings.polish_sigma, settings.polish_iterations, curve)
+    losses = refine(problem, cands, crop=settings.polish_crop, sigma=settings.polish_sigma,
+                    iterations=settings.polish_iterations, curve=curve)
     cands = cands.rebase()
     order = torch.argsort(losses)
     cands, losses = cands.select(order), losses[order]

@@ -19,7 +19,7 @@ from ..camera import Camera
 from ..render import full_window, render_silhouettes
 from ..report import simulate_recording
 from ..rotation import rotation_angle
-from ..search import Candidates, FitResult, Problem, SearchSettings, _candidate_losses
+from ..search import Candidates, FitResult, Problem, SearchSettings, candidate_losses
 from ..shape import Shape, load_shape
 
 RECORDINGS = ("tshape", "tshape_intermediate", "box_fast", "cylinder", "tshape_small")
@@ -131,7 +131,7 @@ def full_loss(problem: Problem, cands: Candidates, crop: int = 64, sigma: float 
     """(B,) the search's silhouette loss over all frames at one fixed crop and edge width, so
     that losses from different stages compare."""
     with torch.no_grad():
-        return _candidate_losses(problem, cands, len(problem.times), crop, sigma)
+        return candidate_losses(problem, cands, len(problem.times), crop, sigma)
 
 
 def box(mask: np.ndarray) -> list[float]:

@@ -160,7 +160,7 @@ def _candidates(base: Tensor, params: Tensor) -> Candidates:
 
 
 def _step_size(problem: Problem, omega: Tensor) -> float:
-    """The RK4 step of :func:`torchfit.search._candidate_losses`: at most 0.2 rad of turn per step."""
+    """The RK4 step of :func:`torchfit.search.candidate_losses`: at most 0.2 rad of turn per step."""
     times = problem.times
     frame_dt = float(times[1] - times[0]) if len(times) > 1 else 1.0
     spin = float(omega.detach().norm(dim=-1).max())

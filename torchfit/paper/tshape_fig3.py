@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..camera import project
 from ..rotation import matrix_to_quat, quat_to_matrix, rotation_angle
-from ..search import Candidates, Problem, _polish, fit
+from ..search import Candidates, Problem, fit, refine
 from ..shape import Shape
 from ..video import load_observation, read_frames
 from ._recording import (
@@ -294,7 +294,7 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
     flipped = flip_candidates(best, torch.as_tensor(mirrors[0], dtype=dtype))
     flip_start_loss = float(full_loss(problem, flipped)[0])
     clock = time.perf_counter()
-    _polish(problem, flipped, 64, 0.5, flip_iterations, [])
+    refine(problem, flipped, crop=64, sigma=0.5, iterations=flip_iterations)
     flipped = flipped.rebase()
     flip_s = time.perf_counter() - clock
     best_loss, flip_loss = float(full_loss(problem, best)[0]), float(full_loss(problem, flipped)[0])

@@ -1,0 +1,103 @@
+"""Discover on the concealed-effect recordings: the verdict table of experiments/discover/README.md.
+
+    MUJOCO_GL=osmesa python experiments/discover/make_concealed.py   # once (~8 min), git-ignored
+    python experiments/discover/concealed.py [names...]              # ~5-10 min per recording
+
+Each recording gets `python -m torchfit experiment=discover`'s outputs in
+experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
+table (verdict against truth, held-out error before and after, fitted coefficients against the
+engine's) is printed and written to results/concealed/table.md and summary.json.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from torchfit.camera import Camera
+from torchfit.discover import SelectionSettings
+from torchfit.discover_video import discover_video
+from torchfit.run import build_problem
+from torchfit.shape import load_shape
+from torchfit.video import load_observation
+
+HERE = Path(__file__).resolve().parent
+RECORDINGS = HERE / "recordings"
+OUT = HERE / "results" / "concealed"
+CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", "inertia", "time_scale", "lens_distortion")
+
+
+def run_one(folder: Path, out: Path) -> dict:
+    truth = json.loads((folder / "truth.json").read_text())
+    shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
+    camera = Camera.from_file(folder / "camera.json")
+    observation = load_observation(str(folder / "video.mp4"), camera=camera)
+    problem, span = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32,
+                                  device=torch.device("cpu"))
+    return discover_video(problem, observation, span, candidates=CANDIDATES, settings=SelectionSettings(),
+                          truth=truth, out_dir=out, overlay=False, progress=print)
+
+
+def row(name: str, content: dict) -> dict:
+    truth = list(content.get("truth_effects", {}))
+    verdict = content["verdict"]
+    right = verdict[:1] == truth[:1] if truth else verdict == []
+    first, last = content["models"][0], content["models"][-1]
+    params = {}
+    for effect in truth:
+        fitted = last["params"].get(effect) or {}
+        params[effect] = {p: {"fitted": v["value"], "std": v["std"], "true": content["truth_effects"][effect][p]}
+                          for p, v in fitted.items()}
+    return {"recording": name, "truth": truth, "verdict": verdict, "indistinguishable": content["indistinguishable"],
+            "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
+            "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
+            "params": params, "seconds": content["seconds"]}
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| recording | hidden | verdict | right | baseline IoU (fitted / held-out) | held-out px before -> after | fitted vs true |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        fitted = "; ".join(f"{p} {_fmt(v['fitted'])} ± {_fmt(v['std'])} (true {_fmt(v['true'])})"
+                           for e in r["params"].values() for p, v in e.items())
+        verdict = ", ".join(r["verdict"]) or ("indistinguishable: " + " / ".join(r["indistinguishable"][0])
+                                               if r["indistinguishable"] else "none")
+        lines.append(f"| {r['recording']} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
+                     f"{'yes' if r['right'] else 'NO'} | {r['iou_baseline']['mean_fitted']:.3f} / "
+                     f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "
+                     f"{r['heldout_px_after']:.2f} | {fitted} |")
+    return "\n".join(lines)
+
+
+def _fmt(value) -> str:
+    if isinstance(value, list):
+        return "(" + ", ".join(f"{v:.3g}" for v in value) + ")"
+    return f"{value:.3g}"
+
+
+def main(names: list[str]) -> None:
+    if not RECORDINGS.exists():
+        sys.exit(f"no recordings in {RECORDINGS}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py")
+    folders = [RECORDINGS / n for n in names] if names else sorted(p for p in RECORDINGS.iterdir() if p.is_dir())
+    summary_file = OUT / "summary.json"
+    rows = {r["recording"]: r for r in json.loads(summary_file.read_text())} if summary_file.exists() else {}
+    for folder in folders:
+        clock = time.perf_counter()
+        print(f"== {folder.name}", flush=True)
+        content = run_one(folder, OUT / folder.name)
+        rows[folder.name] = row(folder.name, content)
+        print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
+              f"{time.perf_counter() - clock:.0f} s", flush=True)
+        OUT.mkdir(parents=True, exist_ok=True)
+        ordered = [rows[k] for k in sorted(rows)]
+        summary_file.write_text(json.dumps(ordered, indent=1))
+        (OUT / "table.md").write_text(table(ordered) + "\n")
+    print(table([rows[k] for k in sorted(rows)]))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

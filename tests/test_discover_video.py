@@ -1,0 +1,116 @@
+"""Video discover: effects inside the silhouette fit (render, refine) and the selection on video."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from torchfit.camera import Camera
+from torchfit.dynamics import RigidBody, simulate
+from torchfit.effects import LensDistortion, make_effect
+from torchfit.render import RenderMesh, full_window, render_silhouettes
+from torchfit.rotation import axis_angle_to_quat
+from torchfit.search import Candidates, Problem, candidate_losses, refine
+from torchfit.shape import load_shape
+from torchfit.video import _boxes
+
+F64 = torch.float64
+
+
+def test_lens_distortion_render_gradcheck_float64():
+    shape = load_shape(primitive="box", dims={"extents": [0.2, 0.1, 0.05]}, density=500.0)
+    camera = Camera(40.0, 40.0, 6.5, 5.5, 14, 12)
+    mesh = RenderMesh.from_shape(shape, F64)
+    rot = torch.eye(3, dtype=F64).expand(1, 1, 3, 3)
+    trans = torch.tensor([[[0.05, 0.02, 1.0]]], dtype=F64)
+
+    def cover(k1, distort=None):
+        def radial(x):  # LensDistortion's model with a differentiable k1
+            return x * (1 + k1 * (x * x).sum(-1, keepdim=True))
+
+        return render_silhouettes(mesh, camera, rot, trans, full_window(camera, 1, 1, dtype=F64),
+                                  size=(12, 14), sigma=0.8, distort=distort or radial)
+
+    k1 = torch.tensor(-0.3, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(cover, (k1,))
+    # barrel distortion (k1 < 0) pulls an off-centre object towards the centre and shrinks it
+    plain, barrel = cover(torch.tensor(0.0, dtype=F64)), cover(torch.tensor(-0.3, dtype=F64))
+    assert barrel.sum() < plain.sum()
+    lens = LensDistortion(k1=-0.3).to(F64)
+    assert torch.allclose(cover(None, lens.distort), barrel)
+
+
+def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0)):
+    """Masks of a thrown box rendered by torchfit with one effect, and the true candidate."""
+    shape = load_shape(primitive="box", dims={"extents": [0.16, 0.08, 0.04]}, density=300.0)
+    camera = Camera(focal, focal, 79.5, 59.5, 160, 120)
+    body = RigidBody.from_shape(shape, F64)
+    mesh = RenderMesh.from_shape(shape, F64)
+    times = torch.arange(frames, dtype=F64) / 60.0
+    quat = axis_angle_to_quat(torch.tensor([[0.3, 0.5, -0.2]], dtype=F64))
+    com, vel, omega = (torch.tensor([[x]], dtype=F64)[0] for x in (list(start), [0.6, -2.0, 0.2], [1.0, 6.0, 2.0]))
+    cands = Candidates(quat, torch.zeros(1, 3, dtype=F64), com, vel, omega, torch.tensor([[0.05, -0.1]], dtype=F64))
+    effects = [make_effect(effect, area=shape.reference_area, **{p: torch.tensor(v, dtype=F64) for p, v in value.items()})]
+    problem = Problem(shape, camera, mesh, body, times, torch.zeros(frames, 120, 160, dtype=F64),
+                      torch.zeros(frames, 4, dtype=F64), torch.ones(frames, dtype=torch.bool))
+    from torchfit.effects import apply_effects
+
+    with torch.no_grad():
+        true_body, true_times, forces = apply_effects(effects, body, times)
+        traj = simulate(cands.state(true_body), true_times, true_body, cands.gravity(9.81), forces)
+        lens = [e for e in effects if e.kind == "camera"]
+        masks = render_silhouettes(mesh, camera, traj.rot, traj.position, full_window(camera, 1, frames, dtype=F64),
+                                   size=(120, 160), sigma=None, distort=lens[0].distort if lens else None)[0]
+    problem.masks = (masks > 0.5).to(F64)
+    problem.boxes = torch.as_tensor(np.nan_to_num(_boxes(problem.masks.numpy() > 0.5)), dtype=F64)
+    assert bool((problem.masks.sum((1, 2)) > 40).all())
+    return problem, cands
+
+
+@pytest.mark.parametrize("effect, value, tolerance, wide", [
+    ("time_scale", {"time_scale": 1.04}, 0.01, False),
+    ("lens_distortion", {"k1": -0.25, "k2": 0.0}, 0.05, True),  # a wide lens, the object off-centre
+])
+def test_refine_recovers_an_effect_hidden_in_torchfit_rendered_masks(effect, value, tolerance, wide):
+    from torchfit.effects import EFFECTS
+
+    problem, truth = _synthetic(effect, value, **({"focal": 120.0, "start": (-0.45, 0.0, 1.0)} if wide else {}))
+    start = truth.select(torch.zeros(1, dtype=torch.long))
+    null = [make_effect(effect, area=problem.shape.reference_area,
+                        **{p: torch.tensor(v, dtype=F64) for p, v in EFFECTS[effect].null_params.items()})]
+    with torch.no_grad():
+        before = float(candidate_losses(problem, start, len(problem.times), 48, 0.5, null))
+    refine(problem, start, crop=48, sigma=0.5, iterations=60, effects=null,
+           effect_scales={"drag_coefficient": 0.3, "time_scale": 0.01, "k1": 0.05, "k2": 0.02})
+    with torch.no_grad():
+        after = float(candidate_losses(problem, start, len(problem.times), 48, 0.5, null))
+    name = next(iter(value))
+    fitted = float(getattr(null[0], name).detach())
+    assert after < before
+    assert abs(fitted - value[name]) < tolerance, (fitted, value[name])
+
+
+def test_cli_video_discover_writes_the_contract_files(tmp_path):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    from torchfit.run import run
+
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+            f"camera.file={small / 'camera.json'}", f"data.truth={small / 'truth.json'}", "search=quick",
+            "params.quick=true", "params.holdout=0.2", "outputs.overlay_video=true", "quiet=true"])
+    summary = run(cfg, tmp_path)
+    content = json.loads((tmp_path / "discover.json").read_text())
+    assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
+    assert set(content["located"]["channels"]) == {"centroid_x", "centroid_y", "scale", "shape"}
+    tried = content["effects"]["quadratic_drag"][0]
+    assert {"params", "delta_bic", "p_value", "heldout_rms_before", "heldout_rms_after"} <= set(tried)
+    assert tried["params"]["quadratic_drag"]["drag_coefficient"]["unit"] == "1"
+    assert content["truth_effects"] == {}
+    for name in ("residuals.png", "report.txt", "overlay_discover.mp4"):
+        assert (tmp_path / name).stat().st_size > 0

@@ -1,0 +1,470 @@
+"""Discover missing physics in a video: the silhouette side of :func:`torchfit.discover.select_effects`.
+
+The data are the four residual channels of :mod:`torchfit.residuals` per frame (centroid x and y,
+scale, shape), each divided by its noise floor, which is estimated once from the baseline fit's
+residuals (frame-to-frame jitter plus a half-pixel edge term): so ``RSS`` is a chi-squared and the
+noise variance is 1. The fitted silhouettes' moments come from the soft renderer in each frame's
+crop window (differentiable, and cheap enough to take finite-difference Jacobians).
+
+Every model is fitted on the first ``1 - holdout`` of the used frames; the last ones are held out
+and predicted, which is where a missing force shows most. The baseline is torchfit's search from
+no guess; each model with one more effect is refined from the model it extends (warm start, the
+new effect at its null value) by L-BFGS on the silhouette loss, the effect's parameters optimised
+jointly with the initial state and the gravity direction. Parameter uncertainties come from the
+Gauss-Newton approximation on the normalised channel residuals, inflated by the reduced
+chi-squared when it exceeds 1.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .discover import (
+    ModelFit,
+    SelectionSettings,
+    _criterion,
+    _jsonable,
+    _with,
+    select_effects,
+)
+from .dynamics import RigidBody, integrate
+from .effects import EFFECTS, Effect, apply_effects, make_effect
+from .losses import mask_moments
+from .render import RenderMesh, full_window, render_silhouettes
+from .residuals import (
+    CHANNELS,
+    Residuals,
+    channel_values,
+    locate,
+    noise_floor,
+    systematic_floor,
+)
+from .search import (
+    SCALES,
+    Candidates,
+    Problem,
+    SearchSettings,
+    candidate_silhouettes,
+    fit,
+    refine,
+)
+
+__all__ = ["EFFECT_SCALES", "VIDEO_EFFECTS", "VideoProblem", "discover_video"]
+
+# Effects a silhouette can see. rolling_shutter needs a per-row time in the renderer (not done).
+VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
+                 "time_scale", "lens_distortion")
+
+# Typical size of each effect parameter (its unit): the optimiser's and the Jacobian's step unit.
+EFFECT_SCALES = {"drag_coefficient": 0.3, "damping": 0.01, "lift_coefficient": 0.3, "spin_damping": 1e-4,
+                 "wind_velocity": 0.5, "offset": 0.005, "moment_scale": 0.1, "time_scale": 0.01,
+                 "k1": 0.05, "k2": 0.02}
+
+_UNITS = {"centroid_x": "px", "centroid_y": "px", "scale": "relative", "shape": "relative"}
+
+
+def _as_float64(problem: Problem) -> Problem:
+    """The same problem with float64 tensors (mesh and body rebuilt from the shape)."""
+    device = problem.masks.device
+    return replace(problem, mesh=RenderMesh.from_shape(problem.shape, torch.float64, device),
+                   body=RigidBody.from_shape(problem.shape, torch.float64, device), times=problem.times.double(),
+                   masks=problem.masks.double(), boxes=problem.boxes.double(), _targets={})
+
+
+def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Image-pixel moments of (T, h, w) crop coverage seen through (T, 3) windows ``(u0, v0, stride)``."""
+    area, centre, cov = mask_moments(cover)
+    stride = windows[:, 2]
+    return (area * stride**2, windows[:, :2] + centre * stride[:, None], cov * stride[:, None, None] ** 2)
+
+
+@dataclass
+class _Model:
+    """A fitted model: the candidate (B = 1) and its effects' parameter values."""
+
+    cands: Candidates
+    values: dict  # effect -> {parameter: tensor}
+
+
+class VideoProblem:
+    """Silhouettes of one recording as a :class:`torchfit.discover.SelectionProblem`.
+
+    Args:
+        problem: the fit's tensors (all frames of the span; ``used`` marks the good ones).
+        candidates: effect names to try.
+        holdout: fraction of the used frames (the last ones) held out.
+        search: settings of the baseline search from no guess.
+        crop, sigma: render crop (pixels) and edge width (crop pixels) of refits and residuals.
+        iterations: L-BFGS iterations of each refit.
+        edge_px: systematic edge accuracy of the segmentation (see :mod:`torchfit.residuals`).
+        progress: one-line status messages.
+    """
+
+    def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
+                 search: SearchSettings = SearchSettings(), crop: int = 64, sigma: float = 0.5,
+                 iterations: int = 100, edge_px: float = 0.5, progress: Callable[[str], None] | None = None):
+        unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
+        if unknown:
+            raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
+        self.search_problem = problem
+        # refits run in float64: from a converged fit, a new effect's first steps change the loss
+        # by less than float32 resolves, and L-BFGS's line search stalls
+        problem = _as_float64(problem)
+        self.problem = problem
+        self.candidates = tuple(candidates)
+        self.search, self.crop, self.sigma, self.iterations = search, crop, sigma, iterations
+        self.say = progress or (lambda message: None)
+        used = problem.used.cpu().numpy().astype(bool)
+        idx = np.flatnonzero(used)
+        n_held = max(1, int(round(holdout * len(idx))))
+        if len(idx) - n_held < 8:
+            raise ValueError(f"too few usable frames for discover: {len(idx)}, need at least {8 + n_held}")
+        self.train = used.copy()
+        self.train[idx[-n_held:]] = False
+        self.held = used & ~self.train
+        self.train_problem = replace(problem, used=torch.as_tensor(self.train, device=problem.used.device))
+        self.train_problem._targets = problem._targets  # share the crop cache
+        observed = problem.masks.double()
+        self.observed = tuple(m.to(problem.masks.dtype) for m in mask_moments(observed))
+        self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
+        self.noise: dict | None = None  # per channel, set by the baseline fit
+        self.noise_var = 1.0  # residuals are divided by their noise floors
+        self.area = float(problem.shape.reference_area)
+
+    # -- models -------------------------------------------------------------------------------
+
+    def effects(self, values: dict) -> list[Effect]:
+        """Effect modules (parameters shared by the batch) from ``{name: {param: value}}``."""
+        dtype, device = self.problem.masks.dtype, self.problem.masks.device
+        out = []
+        for name, params in values.items():
+            effect = make_effect(name, area=self.area, **{k: torch.as_tensor(v).clone() for k, v in params.items()})
+            out.append(effect.to(dtype=dtype, device=device))
+        return out
+
+    def residuals(self, model: _Model) -> dict:
+        """Channel name -> (T,) residual (observed minus fitted), NaN outside the used frames."""
+        with torch.no_grad():
+            return {k: v.cpu().numpy() for k, v in self._channels(model.cands, self.effects(model.values)).items()}
+
+    def _channels(self, cands: Candidates, effects: Sequence[Effect]) -> dict:
+        frames = len(self.problem.times)
+        cands = cands.select(torch.zeros(1, dtype=torch.long)) if cands.delta.requires_grad else cands
+        cover = candidate_silhouettes(self.problem, cands, frames, self.crop, self.sigma, effects)
+        windows = self.problem.windows(self.crop)
+        fitted = _moments(cover[0].to(torch.float64), windows.to(torch.float64))
+        observed = tuple(m.to(torch.float64) for m in self.observed)
+        used = self.problem.used
+        return {k: torch.where(used, v, torch.full_like(v, float("nan")))
+                for k, v in channel_values(observed, fitted).items()}
+
+    def _normalised(self, channels: dict, mask: np.ndarray) -> np.ndarray:
+        """(N, 4) residuals of the frames in ``mask`` divided by the noise floors."""
+        return np.stack([channels[c][mask] / self.noise[c] for c in CHANNELS], -1)
+
+    def _flat(self, cands: Candidates, effects: Sequence[Effect]) -> Tensor:
+        channels = self._channels(cands, effects)
+        mask = torch.as_tensor(self.train, device=self.problem.used.device)
+        return torch.stack([channels[c][mask] / self.noise[c] for c in CHANNELS], -1).flatten()
+
+    def _uncertainty(self, model: _Model, step: float = 0.05) -> dict:
+        """Standard errors of the effect parameters (Gauss-Newton, central differences)."""
+        effects = self.effects(model.values)
+        names = [(e, n) for e in effects for n, _ in e.named_parameters()]
+        if not names:
+            return {}
+        columns = []
+        with torch.no_grad():
+            for field_name, scale in SCALES.items():
+                base = getattr(model.cands, field_name)
+                for j in range(base.shape[1]):
+                    pair = []
+                    for sign in (1.0, -1.0):
+                        cands = model.cands.select(torch.zeros(1, dtype=torch.long))
+                        shifted = base.clone()
+                        shifted[:, j] += sign * step * scale
+                        setattr(cands, field_name, shifted)
+                        pair.append(self._flat(cands, effects))
+                    columns.append((pair[0] - pair[1]) / (2 * step))
+            for effect, pname in names:
+                param = getattr(effect, pname)
+                flat = param.data.view(-1)
+                for j in range(flat.numel()):
+                    pair = []
+                    for sign in (1.0, -1.0):
+                        keep = float(flat[j])
+                        flat[j] = keep + sign * step * EFFECT_SCALES.get(pname, 0.1)
+                        pair.append(self._flat(model.cands, effects))
+                        flat[j] = keep
+                    columns.append((pair[0] - pair[1]) / (2 * step))
+            jac = torch.stack(columns, -1).double()  # (N, P) per unit of scale
+            resid = self._flat(model.cands, effects).double()
+        n, p = jac.shape
+        reduced = float(resid.square().sum()) / max(n - p, 1)
+        cov = torch.linalg.pinv(jac.T @ jac) * max(reduced, 1.0)
+        std = cov.diagonal().clamp(min=0).sqrt()
+        out, offset = {}, p - sum(getattr(e, n).numel() for e, n in names)
+        for effect, pname in names:
+            count = getattr(effect, pname).numel()
+            part = std[offset:offset + count] * EFFECT_SCALES.get(pname, 0.1)
+            offset += count
+            out.setdefault(effect.name, {})[pname] = part.tolist() if count > 1 else float(part[0])
+        return out
+
+    def _describe(self, model: _Model, std: dict) -> dict:
+        params = {}
+        for name, values in model.values.items():
+            params[name] = {}
+            for pname, value in values.items():
+                value = torch.as_tensor(value)
+                params[name][pname] = {
+                    "value": value.tolist() if value.numel() > 1 else float(value),
+                    "std": std.get(name, {}).get(pname, float("nan")),
+                    "unit": EFFECTS[name].units.get(pname, ""),
+                }
+        return params
+
+    def _score(self, effects: tuple[str, ...], model: _Model, held_model: _Model) -> ModelFit:
+        channels = self.residuals(model)
+        used = self.problem.used.cpu().numpy().astype(bool)
+        everything = self._normalised(channels, used)
+        held_channels = self.residuals(held_model)
+        held = self._normalised(held_channels, self.held)
+        n_free = 14 + sum(int(np.prod(np.shape(v))) or 1 for values in model.values.values() for v in values.values())
+        rss = float(np.nansum(everything**2))
+        n_obs = int(np.isfinite(everything).sum())
+        std = self._uncertainty(model) if effects else {}
+        centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
+        held_centroid = np.hypot(held_channels["centroid_x"], held_channels["centroid_y"])
+        return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std), math.sqrt(rss / max(n_obs, 1)),
+                        float(np.sqrt(np.nanmean(held**2))),
+                        payload={"model": model, "held_model": held_model, "channels": channels,
+                                 "held_channels": held_channels,
+                                 "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
+                                 "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))})
+
+    def _refine(self, problem: Problem, start: _Model, effects: tuple[str, ...]) -> _Model:
+        """Refine ``start`` with ``effects`` (new ones from their null values) on ``problem``'s frames."""
+        cands = start.cands.select(torch.zeros(1, dtype=torch.long))
+        values = {name: dict(start.values[name]) for name in effects if name in start.values}
+        for name in effects:
+            if name not in values:
+                values[name] = {k: torch.as_tensor(v, dtype=torch.float64)
+                                for k, v in EFFECTS[name].null_params.items()}
+        modules = self.effects(values)
+        refine(problem, cands, crop=self.crop, sigma=self.sigma, iterations=self.iterations,
+               effects=modules, effect_scales=EFFECT_SCALES)
+        return _Model(cands.rebase(), {e.name: {k: v.detach().cpu().clone() for k, v in e.values().items()}
+                                       for e in modules})
+
+    def fit(self, effects: tuple[str, ...], warm: ModelFit | None) -> ModelFit:
+        """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction)."""
+        clock = time.perf_counter()
+        if not effects:
+            result = fit(self.search_problem, self.search, progress=None)
+            best = result.candidates.select(torch.zeros(1, dtype=torch.long))
+            model = self._refine(self.problem, _Model(Candidates(*(getattr(best, f).double() for f in best.fields())),
+                                                      {}), ())
+            self._set_noise(model)
+            held_model = self._refine(self.train_problem, model, ())
+        else:
+            model = self._refine(self.problem, warm.payload["model"], effects)
+            held_model = self._refine(self.train_problem, warm.payload["held_model"], effects)
+        out = self._score(effects, model, held_model)
+        self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
+                 f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
+                 f"{time.perf_counter() - clock:.0f} s")
+        return out
+
+    def _set_noise(self, model: _Model) -> None:
+        self.noise = {name: 1.0 for name in CHANNELS}
+        channels = self.residuals(model)
+        self.noise = {name: float(np.hypot(noise_floor(channels[name][self.train]), self.systematic[name]))
+                      for name in CHANNELS}
+
+
+def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> np.ndarray:
+    """(T, H, W) bool silhouettes of a model over the span, full frame."""
+    frames = len(problem.times)
+    with torch.no_grad():
+        body, times, forces = apply_effects(effects, problem.body, problem.times)
+        traj = integrate(model.cands.state(body), times, body, model.cands.gravity(problem.g), forces,
+                         step_size=float(problem.times[1] - problem.times[0]) / 4)
+        height, width = problem.masks.shape[-2:]
+        lens = [e for e in effects if e.kind == "camera"]
+        out = []
+        for chunk in range(0, frames, 8):
+            sl = slice(chunk, min(frames, chunk + 8))
+            n = sl.stop - sl.start
+            window = full_window(problem.camera, 1, n, dtype=problem.masks.dtype, device=problem.masks.device)
+            out.append(render_silhouettes(problem.mesh, problem.camera, traj.rot[:, sl], traj.position[:, sl], window,
+                                          size=(height, width), sigma=None,
+                                          distort=lens[0].distort if lens else None)[0])
+        return (torch.cat(out) > 0.5).cpu().numpy()
+
+
+def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: dict, train: np.ndarray,
+                  held: np.ndarray, path: Path) -> None:
+    """Residual channels against time, one column per model (baseline, then each effect added)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(CHANNELS), len(models), figsize=(3.6 * len(models) + 0.6, 7.5), sharex=True,
+                             sharey="row", squeeze=False)
+    for col, (label, channels) in enumerate(models):
+        for row, name in enumerate(CHANNELS):
+            ax = axes[row, col]
+            values = channels[name]
+            ax.axhspan(-noise[name], noise[name], color="0.85", zorder=0)
+            ax.axhline(0, color="k", lw=0.5)
+            ax.plot(times[train], values[train], ".-", ms=3, lw=0.8, color="C0", label="fitted frames")
+            ax.plot(times[held], values[held], ".-", ms=3, lw=0.8, color="C3", label="held out (predicted)")
+            if row == 0:
+                ax.set_title(label, fontsize=9)
+            if col == 0:
+                ax.set_ylabel(f"{name} ({_UNITS[name]})")
+            if row == len(CHANNELS) - 1:
+                ax.set_xlabel("time (s)")
+    axes[0, 0].legend(fontsize=7, loc="best")
+    fig.suptitle("observed - fitted silhouette; grey band: ± noise floor", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def discover_video(problem: Problem, observation, span: np.ndarray, *, candidates: Sequence[str] = VIDEO_EFFECTS,
+                   settings: SelectionSettings = SelectionSettings(), search: SearchSettings = SearchSettings(),
+                   iterations: int = 100, out_dir: Path | None = None, overlay: bool = True,
+                   truth: dict | None = None, progress: Callable[[str], None] | None = None) -> dict:
+    """Fit a recording, locate the mismatch, and add effects while they beat the noise.
+
+    Args:
+        problem: the fit's tensors (:func:`torchfit.run.build_problem`).
+        observation: the segmented recording (for the overlay video); ``span`` its frames in the fit.
+        candidates: effect names to try (subset of ``VIDEO_EFFECTS``).
+        settings: the selection rules (``settings.holdout``: fraction of frames held out).
+        search: the baseline search's settings.
+        iterations: L-BFGS iterations of each refit.
+        out_dir: where ``discover.json``, ``residuals.png`` and ``overlay_discover.mp4`` go.
+        truth: the recording's ``truth.json`` content (its ``effects`` are reported beside the verdict).
+
+    Returns:
+        The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
+    """
+    clock = time.perf_counter()
+    say = progress or (lambda message: None)
+    video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
+                         iterations=iterations, progress=say)
+    selection = select_effects(video, settings, say)
+    chain_keys = [()]
+    for name in selection.verdict:
+        chain_keys.append(_with(chain_keys[-1], name))
+    chain = [selection.fits[k] for k in chain_keys]
+    times = problem.times.cpu().numpy()
+    used = problem.used.cpu().numpy().astype(bool)
+
+    def as_residuals(fit_: ModelFit) -> Residuals:
+        return Residuals(times, used, fit_.payload["channels"], video.noise)
+
+    located = locate(as_residuals(chain[0]))
+    effects = {}
+    for step in selection.steps:
+        for name, score in step.scores.items():
+            effects.setdefault(name, []).append({"base": list(step.base), **score})
+    before, after = chain[0], chain[-1]
+    report = _report_lines(selection, chain, located, video)
+    content = {
+        "verdict": list(selection.verdict),
+        "effects": effects,
+        "located": located,
+        "located_after": locate(as_residuals(after)),
+        "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
+        "noise": video.noise,
+        "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
+                    "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
+                    "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
+                    "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
+        "heldout_frames": [int(span[i]) for i in np.flatnonzero(video.held)],
+        "report": report,
+        "settings": asdict(settings),
+        "candidates": list(video.candidates),
+        "seconds": time.perf_counter() - clock,
+    }
+    if truth is not None:
+        content["truth_effects"] = truth.get("effects", {})
+    masks = {}
+    for label, fit_ in (("baseline", before), ("final", after)):
+        model = fit_.payload["model"]
+        masks[label] = _render_full(video.problem, model, video.effects(model.values))
+        observed = problem.masks.cpu().numpy() > 0.5
+        iou = (masks[label] & observed).sum((1, 2)) / np.maximum((masks[label] | observed).sum((1, 2)), 1)
+        content[f"iou_{label}"] = {"mean_fitted": float(iou[video.train].mean()), "mean_heldout": float(iou[video.held].mean()),
+                                   "worst": float(iou[used].min())}
+    content = _jsonable(content)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
+        labels = ["baseline"] + [f"+ {name}" for name in selection.verdict]
+        plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
+                       for label, f in zip(labels, chain)], times, video.noise, video.train, video.held,
+                      out_dir / "residuals.png")
+        (out_dir / "report.txt").write_text("\n".join(report) + "\n")
+        content["figures"] = ["discover.json", "residuals.png", "report.txt"]
+        if overlay:
+            from .report import _overlay_video
+
+            full = np.zeros(observation.masks.shape, bool)
+            full[span] = masks["final"]
+            _overlay_video(out_dir / "overlay_discover.mp4", observation, full)
+            content["figures"].append("overlay_discover.mp4")
+    return content
+
+
+def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
+    """Channels of the all-frame fit on the fitted frames and of the held-out prediction after them."""
+    return {name: np.where(video.held, fit_.payload["held_channels"][name], fit_.payload["channels"][name])
+            for name in CHANNELS}
+
+
+def _report_lines(selection, chain, located, video: VideoProblem) -> list[str]:
+    """A report a person reads in a minute."""
+    base, final = chain[0], chain[-1]
+    lines = [f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}."]
+    if not selection.verdict:
+        indist = [s.indistinguishable for s in selection.steps if s.indistinguishable]
+        if indist:
+            lines.append(f"Verdict: {' or '.join(indist[0])} — indistinguishable on this data; nothing named.")
+        else:
+            lines.append("Verdict: nothing is missing — no effect beats the noise.")
+    else:
+        lines.append(f"Verdict: {', then '.join(selection.verdict)}.")
+        for name in selection.verdict:
+            for pname, entry in final.params.get(name, {}).items():
+                value, std = entry["value"], entry["std"]
+                if isinstance(value, list):
+                    text = "(" + ", ".join(f"{v:.4g}" for v in value) + ")"
+                    err = "(" + ", ".join(f"{s:.2g}" for s in std) + ")" if isinstance(std, list) else "?"
+                else:
+                    text, err = f"{value:.4g}", f"{std:.2g}"
+                lines.append(f"  {name}.{pname} = {text} ± {err} {entry['unit']}")
+    lines.append(f"Evidence: held-out centroid error {base.payload['heldout_centroid_px']:.2f} px -> "
+                 f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
+                 f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
+                 f"(noise floors: " + ", ".join(f"{k} {v:.2g}" for k, v in video.noise.items()) + ").")
+    for step in selection.steps:
+        ranked = sorted(step.scores.items(), key=lambda kv: -kv[1]["delta_bic"])[:3]
+        lines.append(f"Round {'+'.join(step.base) or 'baseline'}: " + "; ".join(
+            f"{n} ΔBIC {s['delta_bic']:.1f}, held-out gain {100 * s['heldout_gain']:.0f}%" for n, s in ranked))
+    return lines
