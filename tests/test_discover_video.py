@@ -107,7 +107,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     summary = run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
-    assert set(content["located"]["channels"]) == {"centroid_x", "centroid_y", "scale", "shape"}
+    assert set(content["located"]["channels"]) == {"centroid_x", "centroid_y", "scale", "shape", "orientation"}
     tried = content["effects"]["quadratic_drag"][0]
     assert {"params", "delta_bic", "p_value", "heldout_rms_before", "heldout_rms_after"} <= set(tried)
     assert tried["params"]["quadratic_drag"]["drag_coefficient"]["unit"] == "1"

@@ -1,10 +1,10 @@
 """Where a fit and a recording disagree: residual channels per frame against a noise floor.
 
-A fitted silhouette can miss the observed one in four ways, each pointing at different physics:
+A fitted silhouette can miss the observed one in five ways, each pointing at different physics:
 its centroid is off sideways (``centroid_x``) or vertically (``centroid_y``) — forces such as drag,
 lift or a tilted gravity; its size is off (``scale``) — depth, so motion along the line of sight;
-or its outline is off at the same place and size (``shape``) — orientation, so torques, inertia or
-the centre of mass. Segmentation noise is nearly independent from frame to frame, while missing
+or its outline is off at the same place and size, longer or shorter (``shape``) or turned in the
+image plane (``orientation``) — the body's orientation, so torques, inertia or the centre of mass. Segmentation noise is nearly independent from frame to frame, while missing
 physics grows smoothly with time; so the noise floor of each channel is estimated from the data
 itself, from its frame-to-frame differences, and a channel carries a mismatch when a smooth trend
 stands above that floor. Segmentation also errs smoothly — its edge bias follows the pose — so the
@@ -20,10 +20,11 @@ import torch
 
 from .losses import mask_moments
 
-__all__ = ["CHANNELS", "Residuals", "channel_values", "locate", "noise_floor", "residual_channels", "systematic_floor"]
+__all__ = ["CHANNELS", "UNITS", "Residuals", "channel_values", "locate", "noise_floor", "residual_channels", "systematic_floor"]
 
-CHANNELS = ("centroid_x", "centroid_y", "scale", "shape")
-_UNITS = {"centroid_x": "px", "centroid_y": "px", "scale": "relative", "shape": "relative"}
+CHANNELS = ("centroid_x", "centroid_y", "scale", "shape", "orientation")
+UNITS = {"centroid_x": "px", "centroid_y": "px", "scale": "relative", "shape": "relative",
+          "orientation": "relative"}
 
 
 @dataclass(frozen=True)
@@ -36,7 +37,10 @@ class Residuals:
         values: channel name -> (T,) residual: centroid in pixels (x right, y down), ``scale``
             as log(observed size / fitted size) with size = sqrt(area), ``shape`` as the
             normalised second moments' difference along the observed outline's long axis
-            (elongation; positive: the observed outline is longer and thinner).
+            (elongation; positive: the observed outline is longer and thinner), ``orientation``
+            as the fitted outline's cross moment in the observed outline's principal axes over
+            the observed trace (≈ the in-plane turn in radians times (λ₁ − λ₂)/(λ₁ + λ₂):
+            zero for a round outline, whose turn is unobservable).
         noise: channel name -> noise floor (standard deviation, same unit as the channel).
     """
 
@@ -77,7 +81,7 @@ def residual_channels(observed: np.ndarray | torch.Tensor, fitted: np.ndarray | 
 
 
 def channel_values(observed: tuple, fitted: tuple) -> dict:
-    """The four channels from silhouette moments (differentiable in ``fitted``).
+    """The five channels from silhouette moments (differentiable in ``fitted``).
 
     Args:
         observed, fitted: ``(area (..., ), centroid (..., 2), covariance (..., 2, 2))`` in image
@@ -97,11 +101,17 @@ def channel_values(observed: tuple, fitted: tuple) -> dict:
     def elongation(moments):
         return torch.einsum("...i,...ij,...j->...", long_axis, moments, long_axis)
 
+    # the short axis a quarter turn from the long one: the cross moment is then the same for
+    # either sign of the long axis (eigh's sign is arbitrary)
+    short_axis = torch.stack((-long_axis[..., 1], long_axis[..., 0]), -1)
+    cross = torch.einsum("...i,...ij,...j->...", long_axis, shape_f, short_axis)
+
     return {
         "centroid_x": centre_o[..., 0] - centre_f[..., 0],
         "centroid_y": centre_o[..., 1] - centre_f[..., 1],
         "scale": 0.5 * torch.log(safe_o / safe_f),
         "shape": elongation(shape_o) / elongation(shape_f).clamp(min=1e-9) - 1.0,
+        "orientation": -cross / torch.diagonal(shape_o, dim1=-2, dim2=-1).sum(-1).clamp(min=1e-9),
     }
 
 
@@ -121,7 +131,8 @@ def systematic_floor(observed: np.ndarray, used: np.ndarray, edge_px: float = 0.
     perimeter = (observed & ~inner).sum((1, 2))
     area = observed.sum((1, 2))
     ratio = float(np.median(perimeter[used] / np.maximum(area[used], 1))) if used.any() else 0.0
-    return {"centroid_x": edge_px, "centroid_y": edge_px, "scale": edge_px * ratio / 2, "shape": edge_px * ratio}
+    return {"centroid_x": edge_px, "centroid_y": edge_px, "scale": edge_px * ratio / 2, "shape": edge_px * ratio,
+            "orientation": edge_px * ratio / 2}
 
 
 def noise_floor(values: np.ndarray) -> float:
@@ -186,7 +197,7 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
         rms = float(np.sqrt(np.mean(values**2)))
         is_flagged = bool(trend["significance"] > threshold and rms > 2 * sigma)
         growth = {0: "constant", 1: "growing linearly", 2: "growing like t^2"}.get(trend["degree"], "-")
-        report[name] = {"rms": rms, "noise": sigma, "unit": _UNITS[name],
+        report[name] = {"rms": rms, "noise": sigma, "unit": UNITS[name],
                         "significance": trend["significance"], "trend": trend["degree"],
                         "growth": growth, "from_frame": onset, "flagged": is_flagged}
         if is_flagged:
@@ -194,10 +205,11 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
             sign = float(np.sign(fitted[-1] if len(fitted) else 0.0))
             direction = {"centroid_x": {1: "right", -1: "left"}, "centroid_y": {1: "down", -1: "up"},
                          "scale": {1: "larger (nearer)", -1: "smaller (farther)"},
-                         "shape": {1: "longer", -1: "shorter"}}[name].get(int(sign), "")
+                         "shape": {1: "longer", -1: "shorter"},
+                         "orientation": {1: "turned clockwise", -1: "turned counter-clockwise"}}[name].get(int(sign), "")
             start = f" from frame {onset} on" if onset is not None else ""
             words.append(f"{name}: observed {direction} than fitted{start}, {growth}; RMS "
-                         f"{rms:.3g} {_UNITS[name]} vs noise {sigma:.2g} ({trend['significance']:.0f} sigma)")
+                         f"{rms:.3g} {UNITS[name]} vs noise {sigma:.2g} ({trend['significance']:.0f} sigma)")
     quiet = [name for name in report if name not in flagged]
     if quiet:
         words.append(f"at noise level: {', '.join(quiet)}")

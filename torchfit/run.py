@@ -331,16 +331,16 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         if cfg.data.get("points"):
             return run_points(cfg, out_dir, discover=True)
         raise ConfigError("discover: give data.video=<recording> or data.points=<t,x,y,z csv>")
-    from .discover_video import VIDEO_EFFECTS, discover_video
+    from .discover_video import DEFAULT_CANDIDATES, VIDEO_EFFECTS, discover_video
 
     ctx = context(cfg)
     settings = params(cfg)
     quick = bool(settings.pop("quick", False))
     settings.pop("candidates", None)  # the points' list
-    candidates = settings.pop("video_candidates", None) or list(VIDEO_EFFECTS)
-    iterations = int(settings.pop("iterations", 100))
+    candidates = settings.pop("video_candidates", None) or list(DEFAULT_CANDIDATES)
+    iterations = int(settings.pop("iterations", 15))
     if quick:
-        candidates, iterations = candidates[:1], 3
+        candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
     if bad:
         raise ConfigError(f"params.video_candidates: {bad} cannot be discovered from video; "

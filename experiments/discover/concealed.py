@@ -20,7 +20,7 @@ import torch
 
 from torchfit.camera import Camera
 from torchfit.discover import SelectionSettings
-from torchfit.discover_video import discover_video
+from torchfit.discover_video import DEFAULT_CANDIDATES, discover_video
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
 from torchfit.video import load_observation
@@ -28,7 +28,7 @@ from torchfit.video import load_observation
 HERE = Path(__file__).resolve().parent
 RECORDINGS = HERE / "recordings"
 OUT = HERE / "results" / "concealed"
-CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", "inertia", "time_scale", "lens_distortion")
+CANDIDATES = DEFAULT_CANDIDATES  # inertia left out: see the README
 
 
 def run_one(folder: Path, out: Path) -> dict:
@@ -84,11 +84,13 @@ def main(names: list[str]) -> None:
         sys.exit(f"no recordings in {RECORDINGS}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py")
     folders = [RECORDINGS / n for n in names] if names else sorted(p for p in RECORDINGS.iterdir() if p.is_dir())
     summary_file = OUT / "summary.json"
-    rows = {r["recording"]: r for r in json.loads(summary_file.read_text())} if summary_file.exists() else {}
+    rows = {}
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, OUT / folder.name)
+        # other runs may have written meanwhile: merge
+        rows = {r["recording"]: r for r in json.loads(summary_file.read_text())} if summary_file.exists() else {}
         rows[folder.name] = row(folder.name, content)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
