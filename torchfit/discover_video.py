@@ -246,7 +246,9 @@ class VideoProblem:
             j, r = jac[good], resid[good]
             jtj = j.T @ j
             grad = j.T @ r
-            scale = jtj.diagonal().clamp(min=1e-12)
+            # directions the data cannot see (a ball's orientation and spin) have zero columns:
+            # a floor on the damping keeps the system solvable and leaves them where they are
+            scale = jtj.diagonal().clamp(min=1e-9 * float(jtj.diagonal().max()) + 1e-12)
             improved = False
             for _ in range(8):
                 delta = -torch.linalg.solve(jtj + damping * torch.diag(scale), grad)

@@ -1,7 +1,8 @@
 """Discover on the concealed-effect recordings: the verdict table of experiments/discover/README.md.
 
     MUJOCO_GL=osmesa python experiments/discover/make_concealed.py   # once (~8 min), git-ignored
-    python experiments/discover/concealed.py [names...]              # ~5-10 min per recording
+    python experiments/discover/concealed.py [names...]              # ~2-6 min per recording
+    python experiments/discover/concealed.py --table                 # the table from the outputs
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
 experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
@@ -16,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from torchfit.camera import Camera
@@ -42,6 +44,16 @@ def run_one(folder: Path, out: Path) -> dict:
                           truth=truth, out_dir=out, overlay=False, progress=print)
 
 
+def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
+    """A body-frame vector fitted in a frame that may differ from the truth's by one of the shape's
+    symmetries (a T-handle turned 180 degrees about its stem looks the same): the image closest
+    to the true vector."""
+    truth = json.loads((folder / "truth.json").read_text())
+    symmetries = np.asarray(load_shape(folder / "mesh.obj", density=truth["object"]["density"]).symmetries)
+    images = symmetries @ np.asarray(fitted)
+    return images[np.argmin(np.linalg.norm(images - np.asarray(true), axis=1))].tolist()
+
+
 def row(name: str, content: dict) -> dict:
     truth = list(content.get("truth_effects", {}))
     verdict = content["verdict"]
@@ -52,6 +64,9 @@ def row(name: str, content: dict) -> dict:
         fitted = last["params"].get(effect) or {}
         params[effect] = {p: {"fitted": v["value"], "std": v["std"], "true": content["truth_effects"][effect][p]}
                           for p, v in fitted.items()}
+        if effect == "com_offset" and "offset" in params[effect]:  # compare modulo the shape's symmetry
+            entry = params[effect]["offset"]
+            entry["fitted"] = _aligned(RECORDINGS / name, entry["fitted"], entry["true"])
     return {"recording": name, "truth": truth, "verdict": verdict, "indistinguishable": content["indistinguishable"],
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
@@ -79,7 +94,17 @@ def _fmt(value) -> str:
     return f"{value:.3g}"
 
 
+def rebuild() -> None:
+    """The table again from the discover.json files already written (no fitting)."""
+    rows = [row(f.parent.name, json.loads(f.read_text())) for f in sorted(OUT.glob("*/discover.json"))]
+    (OUT / "summary.json").write_text(json.dumps(rows, indent=1))
+    (OUT / "table.md").write_text(table(rows) + "\n")
+    print(table(rows))
+
+
 def main(names: list[str]) -> None:
+    if names == ["--table"]:
+        return rebuild()
     if not RECORDINGS.exists():
         sys.exit(f"no recordings in {RECORDINGS}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py")
     folders = [RECORDINGS / n for n in names] if names else sorted(p for p in RECORDINGS.iterdir() if p.is_dir())

@@ -61,22 +61,30 @@ def concealed_specs() -> list[tuple[mr.RecordingSpec, str]]:
     base = {"write_effects": True, "n_frames": 45, "fps": 60.0}
     tennis = {"shape": "sphere", "ball_radius": 0.033, "density": 380.0}  # 57 g, a tennis ball
     foam = {"shape": "sphere", "ball_radius": 0.035, "density": 150.0}  # 27 g foam ball
+    # a ball shows no rotation, so over 0.75 s its drag is a constant deceleration that a tilted
+    # gravity and a changed initial velocity absorb (discover measured 0.28 px held-out error):
+    # the ball throws last 0.9 s (farther away to stay in view), long enough for the deceleration to
+    # turn with the velocity
+    long = {**base, "n_frames": 54, "depth_range": (1.9, 2.4), "max_tries": 2000}
     return [
         # ---- quadratic drag ----
         (S(name="drag_ball", **tennis, **drag(0.25), spin_rate=0.0, tilt_deg=8.0, roll_deg=3.0,
-           seed=101, **base), "quadratic drag, tennis ball (C_d 0.5)"),
+           seed=101, **long), "quadratic drag, tennis ball (C_d 0.5)"),
         (S(name="drag_foam_ball", **foam, **drag(0.25), spin_rate=0.0, tilt_deg=5.0,
-           roll_deg=-4.0, depth_range=(1.3, 1.6), seed=102, **base),
+           roll_deg=-4.0, seed=102, **long),
          "quadratic drag, light foam ball (C_d 0.5)"),
         (S(name="drag_tshape", shape="tshape", **drag(0.4), spin_rate=8.0, spin_axis="major",
            spin_wobble=0.3, tilt_deg=10.0, roll_deg=5.0, seed=103, **base),
          "quadratic drag, T-handle (C_d 0.8)"),
+        # added after the first run showed that a ball's drag is absorbed (no visible rotation)
+        (S(name="drag_box", shape="box", **drag(0.4), spin_rate=9.0, spin_axis="random", tilt_deg=6.0,
+           roll_deg=-3.0, seed=104, **base), "quadratic drag, box (C_d 0.8)"),
         # ---- Magnus lift (visible spin: bodies whose rotation the silhouette shows) ----
         (S(name="magnus_tshape", shape="tshape", **lift(1.0), spin_rate=16.0, spin_axis="major",
            spin_wobble=0.15, tilt_deg=9.0, roll_deg=-3.0, seed=111, **base),
          "Magnus lift, T-handle spinning about its major axis"),
-        (S(name="magnus_cylinder", shape="cylinder", **lift(1.0), spin_rate=15.0,
-           spin_axis="major", spin_wobble=0.2, tilt_deg=7.0, roll_deg=4.0, seed=112, **base),
+        (S(name="magnus_cylinder", shape="cylinder", **lift(1.0), spin_rate=25.0,
+           spin_axis="major", spin_wobble=0.2, tilt_deg=7.0, roll_deg=4.0, seed=112, **long),
          "Magnus lift, cylinder tumbling end over end"),
         # ---- centre of mass moved by a hidden dense block ----
         (S(name="com_tshape", shape="tshape", hidden_weight=((0.05, 0.0, 0.0), (0.008,) * 3, 0.036),
