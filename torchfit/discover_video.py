@@ -434,6 +434,7 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
             if row == len(CHANNELS) - 1:
                 ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
+    fig.align_ylabels(axes[:, 0])
     fig.suptitle("observed - fitted silhouette; grey band: ± noise floor", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
