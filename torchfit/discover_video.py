@@ -430,7 +430,7 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
             if row == 0:
                 ax.set_title(label, fontsize=9)
             if col == 0:
-                ax.set_ylabel(f"{name} ({UNITS[name]})")
+                ax.set_ylabel(f"{name}\n({UNITS[name]})")
             if row == len(CHANNELS) - 1:
                 ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
