@@ -144,6 +144,14 @@ class Selection:
     fits: dict[tuple[str, ...], ModelFit]
     noise_var: float
 
+    def chain(self) -> list[tuple[str, ModelFit]]:
+        """The baseline, then the model after each added effect: ``(label, fit)`` pairs."""
+        keys, labels = [()], ["baseline"]
+        for name in self.verdict:
+            keys.append(_with(keys[-1], name))
+            labels.append(f"+ {name}")
+        return [(label, self.fits[key]) for label, key in zip(labels, keys)]
+
 
 def _criterion(fit: ModelFit, noise_var: float) -> tuple[float, float]:
     chi2 = fit.rss / noise_var
@@ -441,10 +449,8 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
     problem = PointsProblem(data, area=area, mass=mass, moment=moment, g=g, up=up, candidates=candidates,
                             holdout=settings.holdout, step=step)
     selection = select_effects(problem, settings, progress)
-    sequence = [()]
-    for name in selection.verdict:
-        sequence.append(_with(sequence[-1], name))
-    chain = [selection.fits[m] for m in sequence]
+    labelled = selection.chain()
+    chain = [fit for _, fit in labelled]
     effects = {}
     for step_ in selection.steps:
         for name, score in step_.scores.items():
@@ -470,8 +476,7 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
-        labels = ["baseline"] + [f"+ {name}" for name in selection.verdict]
-        plot_residuals([(label, f.payload["all"]) for label, f in zip(labels, chain)], data,
+        plot_residuals([(label, f.payload["all"]) for label, f in labelled], data,
                        out_dir / "residuals.png", problem.noise_var)
         content["figures"] = ["discover.json", "residuals.png"]
     return content

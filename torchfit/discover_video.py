@@ -33,11 +33,10 @@ from .discover import (
     SelectionSettings,
     _criterion,
     _jsonable,
-    _with,
     select_effects,
 )
 from .dynamics import RigidBody, integrate
-from .effects import EFFECTS, Effect, apply_effects, make_effect
+from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect
 from .losses import mask_moments
 from .render import RenderMesh, full_window, render_silhouettes
 from .residuals import (
@@ -79,8 +78,6 @@ EDGE_PX = 0.2
 EFFECT_SCALES = {"drag_coefficient": 0.3, "damping": 0.01, "lift_coefficient": 0.3, "spin_damping": 1e-4,
                  "wind_velocity": 0.5, "offset": 0.005, "moment_scale": 0.1, "time_scale": 0.01,
                  "k1": 0.05, "k2": 0.02}
-
-
 
 
 def _as_float64(problem: Problem) -> Problem:
@@ -141,10 +138,7 @@ class VideoProblem:
         self.train = used.copy()
         self.train[idx[-n_held:]] = False
         self.held = used & ~self.train
-        self.train_problem = replace(problem, used=torch.as_tensor(self.train, device=problem.used.device))
-        self.train_problem._targets = problem._targets  # share the crop cache
-        observed = problem.masks.double()
-        self.observed = tuple(m.to(problem.masks.dtype) for m in mask_moments(observed))
+        self.observed = mask_moments(problem.masks)
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
@@ -383,7 +377,6 @@ class VideoProblem:
             self.problem.used = self.problem.used & keep
             self.train = self.train & ~outliers
             self.held = self.held & ~outliers
-            self.train_problem.used = self.train_problem.used & keep
             used = used & ~outliers
         self.noise = {name: float(np.hypot(noise_floor(channels[name][used]), self.systematic[name]))
                       for name in CHANNELS}
@@ -397,7 +390,6 @@ def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> 
         traj = integrate(model.cands.state(body), times, body, model.cands.gravity(problem.g), forces,
                          step_size=float(problem.times[1] - problem.times[0]) / 4)
         height, width = problem.masks.shape[-2:]
-        lens = [e for e in effects if e.kind == "camera"]
         out = []
         for chunk in range(0, frames, 8):
             sl = slice(chunk, min(frames, chunk + 8))
@@ -405,7 +397,7 @@ def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> 
             window = full_window(problem.camera, 1, n, dtype=problem.masks.dtype, device=problem.masks.device)
             out.append(render_silhouettes(problem.mesh, problem.camera, traj.rot[:, sl], traj.position[:, sl], window,
                                           size=(height, width), sigma=None,
-                                          distort=lens[0].distort if lens else None)[0])
+                                          distort=lens_model(effects))[0])
         return (torch.cat(out) > 0.5).cpu().numpy()
 
 
@@ -465,10 +457,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, progress=say)
     selection = select_effects(video, settings, say)
-    chain_keys = [()]
-    for name in selection.verdict:
-        chain_keys.append(_with(chain_keys[-1], name))
-    chain = [selection.fits[k] for k in chain_keys]
+    labelled = selection.chain()
+    chain = [fit for _, fit in labelled]
     times = problem.times.cpu().numpy()
     used = video.problem.used.cpu().numpy().astype(bool)
 
@@ -503,10 +493,10 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     if truth is not None:
         content["truth_effects"] = truth.get("effects", {})
     masks = {}
+    observed = problem.masks.cpu().numpy() > 0.5
     for label, fit_ in (("baseline", before), ("final", after)):
         model = fit_.payload["model"]
         masks[label] = _render_full(video.problem, model, video.effects(model.values))
-        observed = problem.masks.cpu().numpy() > 0.5
         iou = (masks[label] & observed).sum((1, 2)) / np.maximum((masks[label] | observed).sum((1, 2)), 1)
         content[f"iou_{label}"] = {"mean_fitted": float(iou[video.train].mean()), "mean_heldout": float(iou[video.held].mean()),
                                    "worst": float(iou[used].min())}
@@ -515,9 +505,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
-        labels = ["baseline"] + [f"+ {name}" for name in selection.verdict]
         plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
-                       for label, f in zip(labels, chain)], times, video.noise, video.train, video.held,
+                       for label, f in labelled], times, video.noise, video.train, video.held,
                       out_dir / "residuals.png")
         (out_dir / "report.txt").write_text("\n".join(report) + "\n")
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]

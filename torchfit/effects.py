@@ -47,6 +47,7 @@ __all__ = [
     "TimeScale",
     "Wind",
     "apply_effects",
+    "lens_model",
     "make_effect",
     "split_effects",
 ]
@@ -427,6 +428,11 @@ def split_effects(effects: Sequence[Effect]) -> dict[str, list[Effect]]:
     for effect in effects:
         out[effect.kind].append(effect)
     return out
+
+
+def lens_model(effects: Sequence[Effect]):
+    """The ``distort`` of the list's lens effect (normalised coordinates), or None."""
+    return next((e.distort for e in effects if isinstance(e, LensDistortion)), None)
 
 
 def apply_effects(effects: Sequence[Effect], body, times: Tensor):

@@ -30,7 +30,7 @@ from torch.nn.utils import parametrize
 
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
-from .effects import Effect, apply_effects
+from .effects import Effect, apply_effects, lens_model
 from .losses import mask_moments, sample_targets, silhouette_loss
 from .render import RenderMesh, crop_windows, render_silhouettes
 from .rotation import (
@@ -389,10 +389,8 @@ def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop
     step = min(frame_dt, max(problem.max_rotation_step / max(spin, 1e-6), frame_dt / 8))
     traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step)
     windows = problem.windows(crop)[:frames].expand(len(cands), frames, 3)
-    lens = [e for e in effects if e.kind == "camera"]
-    distort = lens[0].distort if lens else None
     return render_silhouettes(problem.mesh, problem.camera, traj.rot, traj.position, windows,
-                              size=(crop, crop), sigma=sigma, distort=distort)
+                              size=(crop, crop), sigma=sigma, distort=lens_model(effects))
 
 
 def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float, steps: int,
