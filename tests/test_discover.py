@@ -27,6 +27,19 @@ def test_control_with_nothing_missing_says_nothing():
     assert all(not entry["passes"] for tries in content["effects"].values() for entry in tries)
 
 
+def test_detection_limit_separates_a_drag_it_sees_from_one_it_cannot():
+    """Each candidate reports the size it would need to pass; a drag well above that limit is
+    found, one well below it is not (same throw, same noise; linear drag, its look-alike on one
+    short track, left out)."""
+    def run(drag):
+        track = synthesize_track(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): drag}, samples=70, seed=0)
+        return discover_points(batch_tracks([track]), candidates=["quadratic_drag", "magnus", "time_scale"], **BALL)
+
+    limit = run(0.0)["effects"]["quadratic_drag"][0]["detectable_above"]["drag_coefficient"]
+    assert 0 < limit < 0.2
+    assert run(3 * limit)["verdict"] == ["quadratic_drag"] and run(limit / 3)["verdict"] == []
+
+
 def test_drag_track_finds_quadratic_drag_with_its_coefficient():
     content = _discover(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): 0.45})
     assert content["verdict"] == ["quadratic_drag"]

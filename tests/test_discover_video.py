@@ -114,3 +114,25 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     assert content["truth_effects"] == {}
     for name in ("residuals.png", "report.txt", "overlay_discover.mp4"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_edge_bias_moves_the_outline_by_that_many_pixels():
+    """The edge-bias nuisance: the observed outline moved inward by b pixels shrinks a square of
+    side s to (s - 2b)^2 and a disc of radius r to about pi (r - b)^2, centroids fixed, and b = 0
+    gives the mask's own moments back."""
+    from torchfit.discover_video import _edge_moments, _moments_at
+    from torchfit.losses import mask_moments
+
+    v, u = np.mgrid[:120, :160]
+    disc = (u - 70.3) ** 2 + (v - 60.7) ** 2 <= 20.0**2
+    square = np.zeros((120, 160), bool)
+    square[30:70, 40:100] = True
+    table = _edge_moments(np.stack([disc, square]))
+    exact = mask_moments(torch.as_tensor(np.stack([disc, square]), dtype=F64))
+    for got, want in zip(_moments_at(table, 0.0), exact):
+        torch.testing.assert_close(got, want)
+    for bias in (-1.0, -0.4, 0.3, 1.0):
+        area, centre, _ = _moments_at(table, bias)
+        assert area[1] == pytest.approx((40 - 2 * bias) * (60 - 2 * bias), rel=2e-3)
+        assert area[0] == pytest.approx(np.pi * (20 - bias) ** 2, rel=0.02)
+        torch.testing.assert_close(centre, exact[1], atol=0.02, rtol=0)

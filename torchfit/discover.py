@@ -187,6 +187,13 @@ def _outside_bounds(name: str, params: dict) -> list[str]:
     return outside
 
 
+def _scaled(std, factor: float):
+    """``std`` (a number or a list of numbers) times ``factor``; NaN where unknown."""
+    if isinstance(std, (list, tuple)):
+        return [float(v) * factor if v is not None else float("nan") for v in std]
+    return float(std) * factor if std is not None else float("nan")
+
+
 def select_effects(problem: SelectionProblem, settings: SelectionSettings = SelectionSettings(),
                    progress: Callable[[str], None] | None = None) -> Selection:
     """Forward selection of effects (module docstring), returning the :class:`Selection`."""
@@ -211,7 +218,10 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             p_value = float(stats.chi2.sf(max(d_chi, 0.0), d_k))
             gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
             outside = _outside_bounds(name, fit.params.get(name, {}))
+            # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
+            need = math.sqrt(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)))
             step.scores[name] = {
+                "detectable_above": {p: _scaled(entry.get("std"), need) for p, entry in fit.params.get(name, {}).items()},
                 "model": list(effects), "delta_chi2": d_chi, "delta_dof": d_k, "delta_bic": bic_base - bic,
                 "p_value": p_value, "sigma": float(stats.norm.isf(max(p_value, 1e-300))) if p_value < 0.5 else 0.0,
                 "delta_loss": base.rss - fit.rss, "rms_before": base.fit_rms, "rms_after": fit.fit_rms,

@@ -95,12 +95,65 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return (area * stride**2, windows[:, :2] + centre * stride[:, None], cov * stride[:, None, None] ** 2)
 
 
+# Step unit of the segmentation edge bias (pixels), the nuisance every model fits.
+EDGE_SCALE = 0.2
+_EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
+
+
+def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID) -> Tensor:
+    """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of ``grid``.
+
+    A pixel's coverage after moving the outline by ``b`` pixels is ``clip(d - b + 1/2, 0, 1)``
+    with ``d`` its signed distance to the outline (Euclidean; positive inside, ±1/2 at the pixels
+    beside it), so ``b = 0`` gives the mask back, ``b > 0`` erodes and ``b < 0`` dilates.
+
+    Returns:
+        (K, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin, K = len(grid).
+    """
+    import cv2
+
+    out = torch.zeros(len(grid), len(masks), 6, dtype=torch.float64)
+    margin = int(math.ceil(float(grid.abs().max()))) + 2
+    for t, mask in enumerate(masks):
+        rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+        if not len(rows):
+            continue
+        y0, x0 = max(rows[0] - margin, 0), max(cols[0] - margin, 0)
+        crop = mask[y0:rows[-1] + margin + 1, x0:cols[-1] + margin + 1]
+        padded = np.pad(crop, 1).astype(np.uint8)  # the image border counts as outside
+        inside = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+        outside = cv2.distanceTransform(1 - padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+        signed = torch.as_tensor(np.where(crop, inside - 0.5, 0.5 - outside), dtype=torch.float64)
+        cover = (signed[None] - grid[:, None, None] + 0.5).clamp(0.0, 1.0)  # (K, h, w)
+        v, u = torch.meshgrid(torch.arange(crop.shape[0], dtype=torch.float64) + y0,
+                              torch.arange(crop.shape[1], dtype=torch.float64) + x0, indexing="ij")
+        out[:, t] = torch.stack([(cover * w).sum((-2, -1)) for w in (1.0, u, v, u * u, u * v, v * v)], -1)
+    return out
+
+
+def _moments_at(table: Tensor, bias: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Area (T,), centroid (T, 2), covariance (T, 2, 2) at ``bias`` pixels (linear in the table)."""
+    position = (min(max(bias, float(_EDGE_GRID[0])), float(_EDGE_GRID[-1])) - float(_EDGE_GRID[0])) \
+        / float(_EDGE_GRID[1] - _EDGE_GRID[0])
+    low = min(int(position), len(_EDGE_GRID) - 2)
+    frac = position - low
+    raw = (1 - frac) * table[low] + frac * table[low + 1]  # (T, 6)
+    area = raw[:, 0]
+    safe = area.clamp(min=1e-12)
+    cu, cv = raw[:, 1] / safe, raw[:, 2] / safe
+    cuu, cuv, cvv = raw[:, 3] / safe - cu * cu, raw[:, 4] / safe - cu * cv, raw[:, 5] / safe - cv * cv
+    cov = torch.stack((torch.stack((cuu, cuv), -1), torch.stack((cuv, cvv), -1)), -2)
+    return area, torch.stack((cu, cv), -1), cov
+
+
 @dataclass
 class _Model:
-    """A fitted model: the candidate (B = 1) and its effects' parameter values."""
+    """A fitted model: the candidate (B = 1), its effects' parameter values and the segmentation
+    edge bias (pixels the observed outline lies outside the true one; a nuisance)."""
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
+    edge: float = 0.0
 
 
 class VideoProblem:
@@ -138,7 +191,7 @@ class VideoProblem:
         self.train = used.copy()
         self.train[idx[-n_held:]] = False
         self.held = used & ~self.train
-        self.observed = mask_moments(problem.masks)
+        self.edge_table = _edge_moments(problem.masks.cpu().numpy() > 0.5).to(problem.masks.device)
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
@@ -159,17 +212,18 @@ class VideoProblem:
     def residuals(self, model: _Model) -> dict:
         """Channel name -> (T,) residual (observed minus fitted), NaN outside the used frames."""
         with torch.no_grad():
-            channels = self._channels(model.cands, self.effects(model.values))
+            channels = self._channels(model.cands, self.effects(model.values), model.edge)
         return {k: v[0].cpu().numpy() for k, v in channels.items()}
 
-    def _channels(self, cands: Candidates, effects: Sequence[Effect]) -> dict:
-        """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames."""
+    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: float) -> dict:
+        """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
+        observed outlines moved inward by ``edge`` pixels."""
         frames, batch = len(self.problem.times), len(cands)
         cover = candidate_silhouettes(self.problem, cands, frames, self.crop, self.sigma, effects)
         windows = self.problem.windows(self.crop).repeat(batch, 1)
         fitted = tuple(m.reshape(batch, frames, *m.shape[1:])
                        for m in _moments(cover.reshape(batch * frames, self.crop, self.crop), windows))
-        observed = tuple(m.expand(batch, *m.shape) for m in self.observed)
+        observed = tuple(m.expand(batch, *m.shape) for m in _moments_at(self.edge_table, edge))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
                 for k, v in channel_values(observed, fitted).items()}
@@ -180,15 +234,16 @@ class VideoProblem:
 
     # -- Levenberg-Marquardt on the normalised channels ----------------------------------------
 
-    def _vector(self, cands: Candidates, effects: Sequence[Effect], mask: Tensor) -> Tensor:
+    def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: float, mask: Tensor) -> Tensor:
         """(B, N) normalised residuals of the frames in ``mask`` (channel-major)."""
-        channels = self._channels(cands, effects)
+        channels = self._channels(cands, effects, edge)
         return torch.cat([channels[c][:, mask] / self.noise[c] for c in CHANNELS], -1)
 
-    def _build(self, model: _Model, state: Tensor, extra: Tensor) -> tuple[Candidates, list[Effect]]:
-        """Candidates (B = len(state)) and effects at ``model`` moved by scaled steps.
+    def _build(self, model: _Model, state: Tensor, extra: Tensor) -> tuple[Candidates, list[Effect], float]:
+        """Candidates (B = len(state)), effects and edge bias at ``model`` moved by scaled steps.
 
-        ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P,) in units of ``EFFECT_SCALES``.
+        ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + 1,) the effect parameters in
+        units of ``EFFECT_SCALES``, then the edge bias in units of ``EDGE_SCALE``.
         """
         fields, offset = {}, 0
         for name, scale in SCALES.items():
@@ -204,10 +259,11 @@ class VideoProblem:
                 step = extra[offset:offset + value.numel()].view_as(value) * EFFECT_SCALES.get(pname, 0.1)
                 values[name][pname] = value + step.cpu()
                 offset += value.numel()
-        return cands, self.effects(values)
+        return cands, self.effects(values), model.edge + EDGE_SCALE * float(extra[offset])
 
     def _extra_count(self, model: _Model) -> int:
-        return sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
+        """Free parameters besides the 14 of the state: the effects' and the edge bias."""
+        return 1 + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences;
@@ -216,15 +272,15 @@ class VideoProblem:
         zero_extra = torch.zeros(n_extra, dtype=torch.float64)
         with torch.no_grad():
             state = torch.cat((torch.zeros(1, 14, dtype=torch.float64), step * torch.eye(14, dtype=torch.float64)))
-            cands, effects = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            rows = self._vector(cands, effects, mask)  # (15, N)
+            cands, effects, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
+            rows = self._vector(cands, effects, edge, mask)  # (15, N)
             base = rows[0]
             columns = [(rows[1:] - base) / step]
             for j in range(n_extra):
                 shifted = zero_extra.clone()
                 shifted[j] = step
-                cands, effects = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
-                columns.append(((self._vector(cands, effects, mask)[0] - base) / step)[None])
+                cands, effects, edge = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
+                columns.append(((self._vector(cands, effects, edge, mask)[0] - base) / step)[None])
         jac = torch.cat(columns).T.double()
         return base.double(), jac
 
@@ -247,12 +303,12 @@ class VideoProblem:
             for _ in range(8):
                 delta = -torch.linalg.solve(jtj + damping * torch.diag(scale), grad)
                 with torch.no_grad():
-                    cands, effects = self._build(model, delta[:14][None], delta[14:])
-                    trial = self._vector(cands, effects, mask_t)[0].double()
+                    cands, effects, edge = self._build(model, delta[:14][None], delta[14:])
+                    trial = self._vector(cands, effects, edge, mask_t)[0].double()
                 trial_cost = float(torch.nan_to_num(trial, nan=1e3).square().sum())
                 if trial_cost < cost:
                     model = _Model(cands.rebase(), {e.name: {k: v.detach().cpu().clone() for k, v in e.values().items()}
-                                                    for e in effects})
+                                                    for e in effects}, edge)
                     damping = max(damping / 3, 1e-7)
                     improved = True
                     break
@@ -266,9 +322,9 @@ class VideoProblem:
                 break
         return model, resid, jac
 
-    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> dict:
-        """Standard errors of the effect parameters (Gauss-Newton at the optimum), inflated by
-        the reduced chi-squared when it exceeds 1."""
+    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, float]:
+        """Standard errors of the effect parameters and of the edge bias (pixels): Gauss-Newton at
+        the optimum, inflated by the reduced chi-squared when it exceeds 1."""
         good = torch.isfinite(resid)
         j, r = jac[good], resid[good]
         n, p = j.shape
@@ -282,7 +338,7 @@ class VideoProblem:
                 part = std[offset:offset + count] * EFFECT_SCALES.get(pname, 0.1)
                 offset += count
                 out.setdefault(name, {})[pname] = part.tolist() if count > 1 else float(part[0])
-        return out
+        return out, float(std[offset]) * EDGE_SCALE
 
     def _describe(self, model: _Model, std: dict) -> dict:
         params = {}
@@ -297,7 +353,7 @@ class VideoProblem:
                 }
         return params
 
-    def _score(self, effects: tuple[str, ...], model: _Model, std: dict, held_model: _Model) -> ModelFit:
+    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, float], held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
         everything = self._normalised(channels, used)
@@ -308,9 +364,10 @@ class VideoProblem:
         n_obs = int(np.isfinite(everything).sum())
         centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
         held_centroid = np.hypot(held_channels["centroid_x"], held_channels["centroid_y"])
-        return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std), math.sqrt(rss / max(n_obs, 1)),
+        return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std[0]), math.sqrt(rss / max(n_obs, 1)),
                         float(np.sqrt(np.nanmean(held**2))),
                         payload={"model": model, "held_model": held_model, "channels": channels,
+                                 "edge_px": {"value": model.edge, "std": std[1]},
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))})
@@ -322,7 +379,7 @@ class VideoProblem:
         for name in effects:
             if name not in values:
                 values[name] = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in EFFECTS[name].null_params.items()}
-        return _Model(start.cands.select(torch.zeros(1, dtype=torch.long)), values)
+        return _Model(start.cands.select(torch.zeros(1, dtype=torch.long)), values, start.edge)
 
     def fit(self, effects: tuple[str, ...], warm: ModelFit | None) -> ModelFit:
         """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction)."""
@@ -482,6 +539,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
+                    "edge_px": f.payload["edge_px"],
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(video.held)],
         "outlier_frames": [int(span[i]) for i in video.outliers],
@@ -550,10 +608,24 @@ def _report_lines(selection, chain, located, video: VideoProblem) -> list[str]:
                 else:
                     text, err = f"{value:.4g}", f"{std:.2g}"
                 lines.append(f"  {name}.{pname} = {text} ± {err} {entry['unit']}")
+    limits = []
+    for name, score in (selection.steps[0].scores.items() if selection.steps else ()):
+        if name in selection.verdict:
+            continue
+        for pname, limit in score.get("detectable_above", {}).items():
+            unit = final.params.get(name, {}).get(pname, {}).get("unit") or EFFECTS[name].units.get(pname, "")
+            text = ("(" + ", ".join(f"{v:.2g}" for v in limit) + ")") if isinstance(limit, list) else f"{limit:.2g}"
+            limits.append(f"{name}.{pname} ±{text} {unit}".rstrip())
+    if limits:
+        lines.append("What this clip cannot rule out (an effect smaller than this would not pass the criterion): "
+                     + "; ".join(limits) + ".")
     lines.append(f"Evidence: held-out centroid error {base.payload['heldout_centroid_px']:.2f} px -> "
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
                  f"(noise floors: " + ", ".join(f"{k} {v:.2g}" for k, v in video.noise.items()) + ").")
+    edge = final.payload["edge_px"]
+    lines.append(f"Segmentation edge bias (a nuisance every model fits): {edge['value']:+.2f} ± {edge['std']:.2f} px "
+                 "(observed outline outside the true one when positive).")
     for step in selection.steps:
         ranked = sorted(step.scores.items(), key=lambda kv: -kv[1]["delta_bic"])[:3]
         lines.append(f"Round {'+'.join(step.base) or 'baseline'}: " + "; ".join(

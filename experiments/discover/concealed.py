@@ -67,16 +67,23 @@ def row(name: str, content: dict) -> dict:
         if effect == "com_offset" and "offset" in params[effect]:  # compare modulo the shape's symmetry
             entry = params[effect]["offset"]
             entry["fitted"] = _aligned(RECORDINGS / name, entry["fitted"], entry["true"])
+    # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
+    limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
     return {"recording": name, "truth": truth, "verdict": verdict, "indistinguishable": content["indistinguishable"],
+            "truth_effects": content.get("truth_effects", {}), "detectable_above": limits, "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
             "params": params, "seconds": content["seconds"]}
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| recording | hidden | verdict | right | baseline IoU (fitted / held-out) | held-out px before -> after | fitted vs true |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| recording | hidden | verdict | right | baseline IoU (fitted / held-out) | held-out px before -> after "
+             "| fitted vs true | visible above (true) |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        truth = {p: v for e in r.get("truth_effects", {}).values() for p, v in e.items()}
+        visible = "; ".join(f"{p} {_fmt(v)}" + (f" ({_fmt(truth[p])})" if truth.get(p) is not None else "")
+                            for e in r.get("detectable_above", {}).values() for p, v in e.items())
         fitted = "; ".join(f"{p} {_fmt(v['fitted'])} ± {_fmt(v['std'])} (true {_fmt(v['true'])})"
                            for e in r["params"].values() for p, v in e.items())
         verdict = ", ".join(r["verdict"]) or ("indistinguishable: " + " / ".join(r["indistinguishable"][0])
@@ -84,7 +91,7 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {r['recording']} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{'yes' if r['right'] else 'NO'} | {r['iou_baseline']['mean_fitted']:.3f} / "
                      f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "
-                     f"{r['heldout_px_after']:.2f} | {fitted} |")
+                     f"{r['heldout_px_after']:.2f} | {fitted} | {visible} |")
     return "\n".join(lines)
 
 
