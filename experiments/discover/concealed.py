@@ -21,8 +21,7 @@ import numpy as np
 import torch
 
 from torchfit.camera import Camera
-from torchfit.discover import SelectionSettings
-from torchfit.discover_video import DEFAULT_CANDIDATES, discover_video
+from torchfit.discover_video import DEFAULT_CANDIDATES, VIDEO_SELECTION, discover_video
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
 from torchfit.video import load_observation
@@ -40,7 +39,7 @@ def run_one(folder: Path, out: Path) -> dict:
     observation = load_observation(str(folder / "video.mp4"), camera=camera)
     problem, span = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32,
                                   device=torch.device("cpu"))
-    return discover_video(problem, observation, span, candidates=CANDIDATES, settings=SelectionSettings(),
+    return discover_video(problem, observation, span, candidates=CANDIDATES, settings=VIDEO_SELECTION,
                           truth=truth, out_dir=out, overlay=False, progress=print)
 
 
