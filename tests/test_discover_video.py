@@ -112,8 +112,36 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     assert {"params", "delta_bic", "p_value", "heldout_rms_before", "heldout_rms_after"} <= set(tried)
     assert tried["params"]["quadratic_drag"]["drag_coefficient"]["unit"] == "1"
     assert content["truth_effects"] == {}
+    assert tried["detectable_above"]["drag_coefficient"] > 0
+    edge = content["models"][0]["edge_px"]
+    assert abs(edge["value"]) < 1.0 and edge["std"] > 0
+    assert "edge bias" in (tmp_path / "report.txt").read_text()
     for name in ("residuals.png", "report.txt", "overlay_discover.mp4"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_verdict_is_withheld_when_the_final_fit_is_poor(tmp_path, monkeypatch):
+    """An effect that passes the criterion is not named when the final model still explains the
+    silhouettes poorly (mean IoU below MIN_IOU): it is reported as withheld."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    import torchfit.discover_video as dv
+    from torchfit.run import run
+
+    monkeypatch.setattr(dv, "MIN_IOU", 1.01)  # no fit reaches it
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+            f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
+            "params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.max_effects=1",
+            "outputs.overlay_video=false", "quiet=true"])
+    run(cfg, tmp_path)
+    content = json.loads((tmp_path / "discover.json").read_text())
+    assert content["verdict"] == [] and content["verdict_withheld"] == ["quadratic_drag"]
+    assert "Verdict withheld" in (tmp_path / "report.txt").read_text()
 
 
 def test_edge_bias_moves_the_outline_by_that_many_pixels():

@@ -219,7 +219,7 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
             outside = _outside_bounds(name, fit.params.get(name, {}))
             # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
-            need = math.sqrt(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)))
+            need = math.sqrt(max(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)), 0.0))
             step.scores[name] = {
                 "detectable_above": {p: _scaled(entry.get("std"), need) for p, entry in fit.params.get(name, {}).items()},
                 "model": list(effects), "delta_chi2": d_chi, "delta_dof": d_k, "delta_bic": bic_base - bic,

@@ -77,6 +77,9 @@ DEFAULT_CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", 
 # no false alarm).
 EDGE_PX = 0.2
 
+# Below this mean IoU (fitted frames) of the final model the verdict is withheld.
+MIN_IOU = 0.9
+
 # Selection on video: the held-out error may not grow by more than 5 % (it need not shrink). A
 # frame-rate error and a depth moved with the outline (the edge bias) predict the same centroids, so
 # held-out frames cannot tell them apart; only the silhouette's size does, which the BIC weighs
@@ -545,7 +548,6 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         for name, score in step.scores.items():
             effects.setdefault(name, []).append({"base": list(step.base), **score})
     before, after = chain[0], chain[-1]
-    report = _report_lines(selection, chain, located, video)
     content = {
         "verdict": list(selection.verdict),
         "effects": effects,
@@ -560,7 +562,6 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(video.held)],
         "outlier_frames": [int(span[i]) for i in video.outliers],
-        "report": report,
         "settings": asdict(settings),
         "candidates": list(video.candidates),
         "seconds": time.perf_counter() - clock,
@@ -575,6 +576,13 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         iou = (masks[label] & observed).sum((1, 2)) / np.maximum((masks[label] | observed).sum((1, 2)), 1)
         content[f"iou_{label}"] = {"mean_fitted": float(iou[video.train].mean()), "mean_heldout": float(iou[video.held].mean()),
                                    "worst": float(iou[used].min())}
+    # a verdict needs a model that explains the silhouettes: below MIN_IOU the search may have
+    # landed on a wrong pose, and whatever beats the noise on top of it is not evidence
+    withheld = selection.verdict and content["iou_final"]["mean_fitted"] < MIN_IOU
+    if withheld:
+        content["verdict_withheld"], content["verdict"] = content["verdict"], []
+    content["report"] = report = _report_lines(selection, chain, located, video,
+                                               content["iou_final"]["mean_fitted"] if withheld else None)
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)
@@ -601,10 +609,15 @@ def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
             for name in CHANNELS}
 
 
-def _report_lines(selection, chain, located, video: VideoProblem) -> list[str]:
-    """A report a person reads in a minute."""
+def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None = None) -> list[str]:
+    """A report a person reads in a minute (``withheld_iou``: the final model's mean IoU when the
+    verdict is withheld for it)."""
     base, final = chain[0], chain[-1]
     lines = [f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}."]
+    if withheld_iou is not None:
+        lines.append(f"Verdict withheld: even with {', '.join(selection.verdict)} the fit explains the silhouettes "
+                     f"poorly (mean IoU {withheld_iou:.3f} < {MIN_IOU}) — the search may have found a wrong pose, or "
+                     "what is missing is outside the vocabulary.")
     if video.outliers:
         lines.append(f"Left out as segmentation failures (jumps off their neighbours): frames {video.outliers} "
                      "of the fitted span.")
@@ -615,7 +628,8 @@ def _report_lines(selection, chain, located, video: VideoProblem) -> list[str]:
         else:
             lines.append("Verdict: nothing is missing — no effect beats the noise.")
     else:
-        lines.append(f"Verdict: {', then '.join(selection.verdict)}.")
+        label = "Beat the noise on top of that poor fit (not a verdict)" if withheld_iou is not None else "Verdict"
+        lines.append(f"{label}: {', then '.join(selection.verdict)}.")
         for name in selection.verdict:
             for pname, entry in final.params.get(name, {}).items():
                 value, std = entry["value"], entry["std"]

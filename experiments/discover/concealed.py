@@ -69,7 +69,7 @@ def row(name: str, content: dict) -> dict:
     # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
     limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
     return {"recording": name, "truth": truth, "verdict": verdict, "indistinguishable": content["indistinguishable"],
-            "truth_effects": content.get("truth_effects", {}), "detectable_above": limits, "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
+            "truth_effects": content.get("truth_effects", {}), "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits, "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
             "params": params, "seconds": content["seconds"]}
@@ -87,6 +87,8 @@ def table(rows: list[dict]) -> str:
                            for e in r["params"].values() for p, v in e.items())
         verdict = ", ".join(r["verdict"]) or ("indistinguishable: " + " / ".join(r["indistinguishable"][0])
                                                if r["indistinguishable"] else "none")
+        if r.get("verdict_withheld"):
+            verdict = f"withheld (poor fit): {', '.join(r['verdict_withheld'])}"
         lines.append(f"| {r['recording']} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{'yes' if r['right'] else 'NO'} | {r['iou_baseline']['mean_fitted']:.3f} / "
                      f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "
