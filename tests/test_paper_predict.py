@@ -139,3 +139,23 @@ def test_quick_run_writes_figures_and_summary(tmp_path):
     assert row["lm_losses"][-1] < row["lm_losses"][0]
     assert row["newton_step_at_fit"]["rotation_deg"] < 0.1
     assert row["horizon"]["integrator_vs_mujoco_deg"] < 0.1
+
+
+def test_frame_sandwich_matches_laplace_for_independent_residuals_and_widens_for_correlated_ones():
+    """With independent residuals the per-frame sandwich agrees with s²(JᵀJ)⁻¹; when each frame's
+    residuals share one error (an edge displaced as a whole), it is much wider, as it should be."""
+    generator = torch.Generator().manual_seed(1)
+    frames, rows = 400, 25
+    jac = torch.randn(frames * rows, 2, dtype=torch.float64, generator=generator)
+    jac[:, 1] = 1.0 + 0.1 * jac[:, 1]  # a parameter every pixel of a frame responds to alike
+    independent = 0.1 * torch.randn(frames * rows, dtype=torch.float64, generator=generator)
+    shared = 0.1 * torch.randn(frames, 1, dtype=torch.float64, generator=generator).expand(frames, rows).reshape(-1)
+    for res, ratio in ((independent, (0.8, 1.25)), (shared, (3.0, 7.0))):
+        res = res - jac @ torch.linalg.lstsq(jac, res[:, None]).solution[:, 0]  # at the optimum
+        _, plain = laplace_samples(jac, res, 1)
+        draws, sandwich = laplace_samples(jac, res, 4000, clusters=frames, generator=generator)
+        wider = float((sandwich[1, 1] / plain[1, 1]).sqrt())
+        assert ratio[0] < wider < ratio[1], wider
+    assert torch.allclose(torch.cov(draws.T), sandwich, rtol=0.1, atol=0.1 * float(sandwich.diagonal().max()))
+    with pytest.raises(ValueError, match="clusters must be"):
+        laplace_samples(jac, res, 1, clusters=7)

@@ -15,7 +15,9 @@ forward-mode product, obtained as the derivative of the reverse-mode product ``J
 to ``v`` (the "double-vjp" trick; the rasteriser's backward pass is itself differentiable).
 Initial states drawn from that Gaussian are propagated over the clip, giving a band of predicted
 errors. The pixel residuals are not independent (neighbouring edge pixels move together), so
-``s² (JᵀJ)⁻¹`` understates the spread; ``noise_inflation`` scales the standard deviations.
+``s² (JᵀJ)⁻¹`` understates the spread; by default (``covariance="frames"``) the covariance is the
+cluster-robust sandwich with each frame's residuals one cluster, which allows any correlation
+inside a frame (not between frames). ``noise_inflation`` scales the standard deviations.
 """
 
 from __future__ import annotations
@@ -167,24 +169,45 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor], params: Tensor, s
 
 
 def laplace_samples(jacobian: Tensor, residuals: Tensor, count: int, *, inflation: float = 1.0,
-                    generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
-    """Draws from ``N(0, inflation² s² (JᵀJ)⁻¹)``, ``s² = |r|² / (N - P)``.
+                    generator: torch.Generator | None = None, clusters: int | None = None) -> tuple[Tensor, Tensor]:
+    """Draws from the fit's covariance times ``inflation²``.
 
-    Directions the silhouettes do not constrain (eigenvalues below 1e-12 of the largest) are
-    held at zero rather than given an infinite spread.
+    ``clusters=None``: the Laplace (Gauss-Newton) covariance ``s² (JᵀJ)⁻¹``, ``s² = |r|² / (N - P)``,
+    which takes the N residuals as independent. ``clusters=C``: the residuals are C equal,
+    consecutive blocks (frames) that may be correlated inside but not with each other, and the
+    covariance is the cluster-robust sandwich ``(JᵀJ)⁻¹ (Σ_c g_c g_cᵀ) (JᵀJ)⁻¹ · C'/(C' - 1)`` with
+    ``g_c = J_cᵀ r_c`` a block's gradient and C' the blocks with any residual (frames left out
+    have none). Neighbouring edge pixels of a silhouette move together, so the per-frame sandwich
+    is the honest one for pixel residuals.
+
+    Directions the silhouettes do not constrain (eigenvalues of JᵀJ below 1e-12 of the largest)
+    are held at zero rather than given an infinite spread.
+
+    Args:
+        jacobian: (N, P); residuals: (N,).
 
     Returns:
         (count, P) offsets and the (P, P) covariance.
     """
     n_res, n_par = jacobian.shape
-    noise = float(residuals.square().sum()) / max(n_res - n_par, 1)
     values, vectors = torch.linalg.eigh(jacobian.T @ jacobian)
     keep = values > 1e-12 * values.max()
     inv = torch.where(keep, 1.0 / values.clamp(min=1e-300), torch.zeros_like(values))
-    cov = inflation**2 * noise * (vectors * inv) @ vectors.T
-    scale = inflation * math.sqrt(noise) * inv.sqrt()
+    bread = (vectors * inv) @ vectors.T
+    if clusters is None:
+        noise = float(residuals.square().sum()) / max(n_res - n_par, 1)
+        cov = inflation**2 * noise * bread
+    else:
+        if clusters < 2 or n_res % clusters:
+            raise ValueError(f"clusters must be >= 2 and divide the {n_res} residuals, got {clusters}")
+        blocks = torch.einsum("cnp,cn->cp", jacobian.view(clusters, -1, n_par), residuals.view(clusters, -1))
+        active = int((residuals.view(clusters, -1) != 0).any(1).sum())
+        meat = blocks.T @ blocks * active / max(active - 1, 1)
+        cov = inflation**2 * bread @ meat @ bread
+        cov = 0.5 * (cov + cov.T)
+    values, vectors = torch.linalg.eigh(cov)
     z = torch.randn(count, n_par, dtype=jacobian.dtype, generator=generator)
-    return (z * scale) @ vectors.T, cov
+    return (z * values.clamp(min=0).sqrt()) @ vectors.T, cov
 
 
 def _predict(problem: Problem, cands: Candidates, n_frames: int, first: int, fps: float) -> tuple[Tensor, Tensor]:
@@ -237,7 +260,7 @@ def _horizon(rec, problem: Problem, best: Candidates, drawn: Candidates, horizon
 
 
 def _fit_one(name: str, *, quick: bool, window: int, samples: int, inflation: float, crop: int, sigma: float,
-             horizon: float, lm_steps: int, device, dtype, progress, seed: int) -> dict:
+             horizon: float, lm_steps: int, device, dtype, progress, seed: int, covariance: str) -> dict:
     from ..run import build_problem, fit_recording  # run.py imports this module
 
     rec = load_recording(name)
@@ -289,7 +312,10 @@ def _fit_one(name: str, *, quick: bool, window: int, samples: int, inflation: fl
         _, a_iou, a_rot = predicted(result.candidates, k)
         alternatives.append({"loss": float(result.losses[k]), "iou": a_iou, "rotation_error_deg": a_rot})
     generator = torch.Generator().manual_seed(seed)
-    offsets, cov = laplace_samples(jac, res, samples, inflation=inflation, generator=generator)
+    frames = len(problem64.times)  # the residuals are per frame: T (crop² + 2)
+    offsets, cov = laplace_samples(jac, res, samples, inflation=inflation, generator=generator,
+                                   clusters=frames if covariance == "frames" else None)
+    other = laplace_samples(jac, res, 1, clusters=None if covariance == "frames" else frames)[1]
     drawn = perturb(best64, offsets)
     s_rot, s_trans = _predict(problem64, drawn, n_frames, first, fps)  # (M, T', 3, 3)
     sample_iou = np.stack([iou(hard_silhouettes(fitted.problem, s_rot[m:m + 1], s_trans[m:m + 1])[0],
@@ -307,7 +333,7 @@ def _fit_one(name: str, *, quick: bool, window: int, samples: int, inflation: fl
         "rec": rec, "fitted": fitted, "first": first, "window": window, "fit_s": fit_s, "jacobian_s": jac_s,
         "best_iou": best_iou, "best_rot_err": best_rot_err, "alternatives": alternatives,
         "sample_iou": sample_iou, "sample_rot_err": sample_rot_err, "best_masks": best_masks,
-        "std": _sizes(std),
+        "std": _sizes(std), "other_std": _sizes(other.diagonal().clamp(min=0).sqrt()),
         "residual_rms": float(res.square().mean().sqrt()), "loss": float(res.square().sum()),
         "n_residuals": len(res),
     }
@@ -316,7 +342,7 @@ def _fit_one(name: str, *, quick: bool, window: int, samples: int, inflation: fl
 def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float32, progress=print, seed: int = 0,
          recordings: tuple = ("tshape", "tshape_intermediate"), window: int = 18, samples: int = 48,
          noise_inflation: float = 1.0, crop: int = 64, sigma: float = 0.5, band: tuple = (5, 95),
-         horizon: float = 10.0, lm_steps: int = 12) -> dict:
+         horizon: float = 10.0, lm_steps: int = 12, covariance: str = "frames") -> dict:
     """Fit the first ``window`` frames of each recording, predict the rest, plot the errors.
 
     Args:
@@ -325,7 +351,10 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
         recordings: shipped recordings (major- and intermediate-axis spin by default).
         window: frames fitted (the first ones).
         samples: initial states drawn from the Laplace approximation.
-        noise_inflation: multiplies the standard deviations (pixel residuals are correlated).
+        noise_inflation: multiplies the standard deviations.
+        covariance: ``"frames"``: the cluster-robust sandwich with each frame's pixels a cluster
+            (neighbouring edge pixels move together); ``"independent"``: ``s² (JᵀJ)⁻¹``, every pixel
+            residual independent (see :func:`laplace_samples`).
         crop, sigma: rendering of the residuals (the search's polish uses 64 and 0.5).
         band: percentiles of the plotted spread.
         lm_steps: Levenberg-Marquardt steps from the search's answer to the optimum of the
@@ -345,6 +374,8 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
         recordings, window, samples, horizon = ("tshape_small",), 7, 4, 1.0
     if window < 6:
         raise ValueError(f"window must be at least 6 frames (14 unknowns), got {window}")
+    if covariance not in ("frames", "independent"):
+        raise ValueError(f'covariance must be "frames" or "independent", got {covariance!r}')
     if samples < 1 or not noise_inflation > 0:
         raise ValueError(f"samples must be >= 1 and noise_inflation > 0, got {samples}, {noise_inflation}")
     started = time.perf_counter()
@@ -356,8 +387,7 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
         say(f"predict: {name}, fitting frames 0-{window - 1}")
         runs.append(_fit_one(name, quick=quick, window=window, samples=samples, inflation=noise_inflation,
                              crop=crop, sigma=sigma, horizon=horizon, lm_steps=lm_steps, device=device, dtype=dtype,
-                             progress=say,
-                             seed=seed))
+                             progress=say, seed=seed, covariance=covariance))
     low, high = band
     figures, rows = {}, {}
     fig, axes = plt.subplots(len(runs), 2, figsize=(10, 3.3 * len(runs)), squeeze=False)
@@ -412,6 +442,8 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
                 "rotation_error_deg": [float(v) for v in np.nanpercentile(run["sample_rot_err"][:, -1],
                                                                          [low, 50, high])]},
             "laplace_std": run["std"],
+            "covariance": covariance,
+            ("independent_std" if covariance == "frames" else "frames_std"): run["other_std"],
             "residual_rms": run["residual_rms"], "loss": run["loss"], "n_residuals": run["n_residuals"],
             "alternatives_within_25pct": len(run["alternatives"]),
             "newton_step_at_fit": run["newton_step"],
@@ -489,6 +521,7 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
         plt.close(fig)
 
     summary = {"quick": quick, "window": window, "samples": samples, "noise_inflation": noise_inflation,
+               "covariance": covariance,
                "band_percentiles": [low, high], "recordings": rows, "figures": figures,
                "total_s": time.perf_counter() - started}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
