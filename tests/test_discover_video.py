@@ -41,12 +41,9 @@ def test_lens_distortion_render_gradcheck_float64():
     assert torch.allclose(cover(None, lens.distort), barrel)
 
 
-BOX = {"primitive": "box", "dims": {"extents": [0.16, 0.08, 0.04]}}
-
-
-def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0), body=BOX):
-    """Masks of a thrown body (a box) rendered by torchfit with one effect, and the true candidate."""
-    shape = load_shape(**body, density=300.0)
+def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0)):
+    """Masks of a thrown box rendered by torchfit with one effect, and the true candidate."""
+    shape = load_shape(primitive="box", dims={"extents": [0.16, 0.08, 0.04]}, density=300.0)
     camera = Camera(focal, focal, 79.5, 59.5, 160, 120)
     body = RigidBody.from_shape(shape, F64)
     mesh = RenderMesh.from_shape(shape, F64)
@@ -167,37 +164,3 @@ def test_edge_bias_moves_the_outline_by_that_many_pixels():
         assert area[1] == pytest.approx((40 - 2 * bias) * (60 - 2 * bias), rel=2e-3)
         assert area[0] == pytest.approx(np.pi * (20 - bias) ** 2, rel=0.02)
         torch.testing.assert_close(centre, exact[1], atol=0.02, rtol=0)
-
-
-def test_unseen_spin_is_found_and_moved_for_spin_coupled_refits():
-    """A Magnus refit of a cylinder also starts from the spin about the cylinder's own axis moved
-    by ±15 rad/s; those starts change the silhouettes little (through the precession only), and a
-    box, which has no symmetry axis, gets no extra starts."""
-    from torchfit.discover_video import UNSEEN_SPINS, VideoProblem, _Model
-    from torchfit.residuals import CHANNELS
-    from torchfit.rotation import quat_to_matrix
-
-    problem, truth = _synthetic("time_scale", {"time_scale": 1.0}, frames=16,
-                                body={"primitive": "cylinder", "dims": {"radius": 0.03, "height": 0.2}})
-    problem.masks = problem.masks.float()
-    video = VideoProblem(problem, candidates=("magnus",))
-    video.noise = {c: 1.0 for c in CHANNELS}
-    model = _Model(truth, {})
-    starts = video._unseen_spin_starts(model)
-    assert len(starts) == len(UNSEEN_SPINS)
-    axis = quat_to_matrix(truth.quat())[0] @ torch.tensor([0.0, 0.0, 1.0], dtype=F64)  # world frame, t = 0
-    before = video.residuals(model)
-    assert sum(float((start.cands.omega - truth.omega)[0] @ axis) for start in starts) == pytest.approx(0, abs=1e-9)
-    for start, amount in zip(starts, UNSEEN_SPINS):
-        change = (start.cands.omega - truth.omega)[0]
-        assert abs(abs(float(change @ axis)) - abs(amount)) < 0.05 * abs(amount)  # the axis's sign is trimesh's
-        assert float((change - (change @ axis) * axis).norm()) < 0.05 * abs(amount)
-    # the same change across the axis moves the silhouette; along it, much less
-    across = torch.linalg.cross(axis, torch.tensor([1.0, 0.0, 0.0], dtype=F64))
-    tumbled = _Model(Candidates(truth.base, truth.delta, truth.com, truth.com_velocity,
-                                truth.omega + UNSEEN_SPINS[-1] * across / across.norm(), truth.gravity_angles), {})
-    moved = np.nanmax(np.abs(video.residuals(tumbled)["centroid_x"] - before["centroid_x"]))
-    spun = np.nanmax(np.abs(video.residuals(starts[-1])["centroid_x"] - before["centroid_x"]))
-    assert moved > 0.3 and spun < 0.2 * moved, (moved, spun)
-    box, box_truth = _synthetic("time_scale", {"time_scale": 1.0}, frames=12)
-    assert VideoProblem(box, candidates=("magnus",))._unseen_spin_starts(_Model(box_truth, {})) == []

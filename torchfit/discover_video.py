@@ -41,7 +41,6 @@ from .dynamics import RigidBody, integrate
 from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect
 from .losses import mask_moments
 from .render import RenderMesh, full_window, render_silhouettes
-from .rotation import quat_to_matrix
 from .residuals import (
     CHANNELS,
     UNITS,
@@ -77,13 +76,6 @@ DEFAULT_CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", 
 # baseline 0.43-0.92 at 0.2 px, 0.71-1.49 at 0.15 px, 0.08-0.17 at 0.5 px: 0.2 errs on the side of
 # no false alarm).
 EDGE_PX = 0.2
-
-# Effects whose force depends on the spin: the spin about a body's symmetry axis (a cylinder's own
-# axis; any axis of a ball), which the silhouettes barely show, shows through them, so their refits
-# also start from that spin moved by these amounts (rad/s) and keep the best fit.
-SPIN_COUPLED = ("magnus",)
-UNSEEN_SPINS = (-15.0, 15.0)
-_OMEGA_SLOT = list(SCALES).index("omega")
 
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
@@ -423,49 +415,14 @@ class VideoProblem:
             model, resid, jac = self._lm(start, everything, self.iterations)
             held_model, _, _ = self._lm(model, self.train, self.iterations)
         else:
-            spin_coupled = bool(set(effects) - set(warm.effects) & set(SPIN_COUPLED))
-            model, resid, jac = self._refit(self._extend(warm.payload["model"], effects), everything, spin_coupled)
-            held_model, _, _ = self._refit(self._extend(warm.payload["held_model"], effects), self.train,
-                                           spin_coupled)
+            model, resid, jac = self._lm(self._extend(warm.payload["model"], effects), everything, self.iterations)
+            held_model, _, _ = self._lm(self._extend(warm.payload["held_model"], effects), self.train,
+                                        self.iterations)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model)
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
                  f"{time.perf_counter() - clock:.0f} s")
         return out
-
-    def _refit(self, start: _Model, mask: np.ndarray, spin_coupled: bool) -> tuple[_Model, Tensor, Tensor]:
-        """Levenberg-Marquardt from ``start``; for a spin-coupled effect also from ``start`` with
-        its spin about each symmetry axis moved by ``UNSEEN_SPINS`` — the best of them."""
-        best = self._lm(start, mask, self.iterations)
-        if spin_coupled:
-            for shifted in self._unseen_spin_starts(start):
-                trial = self._lm(shifted, mask, self.iterations)
-                if float(torch.nan_to_num(trial[1]).square().sum()) < float(torch.nan_to_num(best[1]).square().sum()):
-                    best = trial
-        return best
-
-    def _unseen_spin_starts(self, model: _Model) -> list[_Model]:
-        """``model`` with its spin moved along each axis of the body's continuous symmetry (a
-        cylinder's own axis; any axis of a ball), about which turning shows in no silhouette and
-        spinning shows only weakly (through the precession it changes)."""
-        mesh = self.problem.shape.mesh
-        if mesh.symmetry not in ("radial", "spherical"):
-            return []
-        dtype, device = torch.float64, self.problem.masks.device
-        if mesh.symmetry == "radial":
-            rot = quat_to_matrix(model.cands.quat())[0].to(dtype)  # object -> camera at t = 0
-            axes = [rot @ torch.tensor(np.array(mesh.symmetry_axis), dtype=dtype, device=device)]
-        else:
-            axes = list(torch.eye(3, dtype=dtype, device=device))
-        first = sum(getattr(model.cands, name).shape[1] for name in list(SCALES)[:_OMEGA_SLOT])
-        starts = []
-        for axis in axes:
-            for amount in UNSEEN_SPINS:
-                shift = torch.zeros(1, 14, dtype=dtype, device=device)
-                shift[0, first:first + 3] = amount * axis / SCALES["omega"]
-                cands, _, _ = self._build(model, shift, torch.zeros(self._extra_count(model), dtype=dtype))
-                starts.append(_Model(cands.rebase(), model.values, model.edge))
-        return starts
 
     def _set_noise(self, model: _Model, threshold: float = 6.0) -> None:
         """Noise floors from the baseline's residuals, after leaving out outlier frames.
