@@ -460,8 +460,9 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
                 "probe_median_error_deg_at": {f"{t:g}s": float(np.interp(t, hz["times"], hz["probe"]))
                                               for t in (0.5, 1.0, 2.0, 5.0, 10.0) if t <= hz["times"][-1] + 1e-9},
             }
-    fig.suptitle(f"fit on the first {runs[0]['window']} frames, predicted to the end; band: Laplace "
-                 f"approximation (noise x{noise_inflation:g})", fontsize=9)
+    spread = "per-frame sandwich covariance" if covariance == "frames" else "Laplace approximation"
+    fig.suptitle(f"fit on the first {runs[0]['window']} frames, predicted to the end; band: {spread}"
+                 + (f" (x{noise_inflation:g})" if noise_inflation != 1 else ""), fontsize=9)
     fig.tight_layout()
     figures["prediction"] = "prediction.png"
     fig.savefig(out_dir / figures["prediction"], dpi=110)
