@@ -13,8 +13,9 @@ chi-squared and BIC) and once without the last ``holdout`` of them (the held-out
 a missing force shows most). A model with one more effect starts from the model it extends with
 the new effect at its null value. Every model also fits the segmentation's edge bias (the observed
 outlines moved by ``b`` pixels along their normals, with a Gaussian prior of ``EDGE_PRIOR_PX``): a
-mask a fraction of a pixel too small otherwise reads as a depth, and with it a frame-rate error. Parameter uncertainties: Gauss-Newton at the optimum, inflated
-by the reduced chi-squared when it exceeds 1.
+mask a fraction of a pixel too small otherwise reads as a depth, and with it a frame-rate error.
+Parameter uncertainties: Gauss-Newton at the optimum, inflated by the reduced chi-squared when it
+exceeds 1.
 """
 
 from __future__ import annotations
@@ -110,7 +111,8 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 # Step unit of the segmentation edge bias (pixels), the nuisance every model fits, and the
 # standard deviation of its Gaussian prior: the mean edge bias of torchfit.video's masks against the
 # true masks is -0.05, -0.02, +0.09, +0.02, +0.23 px on the five shipped recordings (RMS 0.11).
-# Without a prior a free edge bias soaks up a wrong frame rate (time_box: -1.3 px).
+# Where the model is right the fitted bias matches the measured one to a few hundredths of a pixel;
+# a missing effect pulls it (a wrong clock: time_box -1.25 px), see experiments/discover/README.md.
 EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
