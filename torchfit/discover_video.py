@@ -27,6 +27,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -128,8 +129,6 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID) -> Tensor:
     Returns:
         (K, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin, K = len(grid).
     """
-    import cv2
-
     out = torch.zeros(len(grid), len(masks), 6, dtype=torch.float64)
     margin = int(math.ceil(float(grid.abs().max()))) + 2
     for t, mask in enumerate(masks):
@@ -646,7 +645,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         if name in selection.verdict:
             continue
         for pname, limit in score.get("detectable_above", {}).items():
-            unit = final.params.get(name, {}).get(pname, {}).get("unit") or EFFECTS[name].units.get(pname, "")
+            unit = EFFECTS[name].units.get(pname, "")
             text = ("(" + ", ".join(f"{v:.2g}" for v in limit) + ")") if isinstance(limit, list) else f"{limit:.2g}"
             limits.append(f"{name}.{pname} ±{text} {unit}".rstrip())
     if limits:

@@ -411,14 +411,6 @@ class PointModel:
         return torch.tensor([scales.get(pname, 1.0) for _, pname, size in self.columns for _ in range(size)],
                             dtype=torch.float64)
 
-    def null_columns(self) -> Tensor:
-        """(K - n_local,) the effect columns at which every effect vanishes."""
-        values = []
-        for name, pname, size in self.columns[self._first_effect():]:
-            null = EFFECTS[name].null_params[pname]
-            values.extend(null if size == 3 else [null])
-        return torch.tensor(values, dtype=torch.float64)
-
     def _first_effect(self) -> int:
         return 3 if self.fit_spin else 2
 

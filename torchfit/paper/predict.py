@@ -47,6 +47,7 @@ from ._recording import (
 )
 
 __all__ = [
+    "fit_covariance",
     "laplace_samples",
     "levenberg_marquardt",
     "main",
@@ -168,9 +169,8 @@ def levenberg_marquardt(residuals: Callable[[Tensor], Tensor], params: Tensor, s
     return params, losses
 
 
-def laplace_samples(jacobian: Tensor, residuals: Tensor, count: int, *, inflation: float = 1.0,
-                    generator: torch.Generator | None = None, clusters: int | None = None) -> tuple[Tensor, Tensor]:
-    """Draws from the fit's covariance times ``inflation²``.
+def fit_covariance(jacobian: Tensor, residuals: Tensor, *, clusters: int | None = None) -> Tensor:
+    """The fit's (P, P) parameter covariance at a least-squares optimum.
 
     ``clusters=None``: the Laplace (Gauss-Newton) covariance ``s² (JᵀJ)⁻¹``, ``s² = |r|² / (N - P)``,
     which takes the N residuals as independent. ``clusters=C``: the residuals are C equal,
@@ -181,13 +181,10 @@ def laplace_samples(jacobian: Tensor, residuals: Tensor, count: int, *, inflatio
     is the honest one for pixel residuals.
 
     Directions the silhouettes do not constrain (eigenvalues of JᵀJ below 1e-12 of the largest)
-    are held at zero rather than given an infinite spread.
+    get zero variance rather than an infinite one.
 
     Args:
         jacobian: (N, P); residuals: (N,).
-
-    Returns:
-        (count, P) offsets and the (P, P) covariance.
     """
     n_res, n_par = jacobian.shape
     values, vectors = torch.linalg.eigh(jacobian.T @ jacobian)
@@ -195,18 +192,25 @@ def laplace_samples(jacobian: Tensor, residuals: Tensor, count: int, *, inflatio
     inv = torch.where(keep, 1.0 / values.clamp(min=1e-300), torch.zeros_like(values))
     bread = (vectors * inv) @ vectors.T
     if clusters is None:
-        noise = float(residuals.square().sum()) / max(n_res - n_par, 1)
-        cov = inflation**2 * noise * bread
-    else:
-        if clusters < 2 or n_res % clusters:
-            raise ValueError(f"clusters must be >= 2 and divide the {n_res} residuals, got {clusters}")
-        blocks = torch.einsum("cnp,cn->cp", jacobian.view(clusters, -1, n_par), residuals.view(clusters, -1))
-        active = int((residuals.view(clusters, -1) != 0).any(1).sum())
-        meat = blocks.T @ blocks * active / max(active - 1, 1)
-        cov = inflation**2 * bread @ meat @ bread
-        cov = 0.5 * (cov + cov.T)
+        return float(residuals.square().sum()) / max(n_res - n_par, 1) * bread
+    if clusters < 2 or n_res % clusters:
+        raise ValueError(f"clusters must be >= 2 and divide the {n_res} residuals, got {clusters}")
+    blocks = torch.einsum("cnp,cn->cp", jacobian.view(clusters, -1, n_par), residuals.view(clusters, -1))
+    active = int((residuals.view(clusters, -1) != 0).any(1).sum())
+    cov = bread @ (blocks.T @ blocks * active / max(active - 1, 1)) @ bread
+    return 0.5 * (cov + cov.T)
+
+
+def laplace_samples(jacobian: Tensor, residuals: Tensor, count: int, *, inflation: float = 1.0,
+                    generator: torch.Generator | None = None, clusters: int | None = None) -> tuple[Tensor, Tensor]:
+    """Draws from ``N(0, inflation² Cov)`` with ``Cov`` the fit's :func:`fit_covariance`.
+
+    Returns:
+        (count, P) offsets and the (P, P) covariance (times ``inflation²``).
+    """
+    cov = inflation**2 * fit_covariance(jacobian, residuals, clusters=clusters)
     values, vectors = torch.linalg.eigh(cov)
-    z = torch.randn(count, n_par, dtype=jacobian.dtype, generator=generator)
+    z = torch.randn(count, jacobian.shape[1], dtype=jacobian.dtype, generator=generator)
     return (z * values.clamp(min=0).sqrt()) @ vectors.T, cov
 
 
@@ -315,7 +319,7 @@ def _fit_one(name: str, *, quick: bool, window: int, samples: int, inflation: fl
     frames = len(problem64.times)  # the residuals are per frame: T (crop² + 2)
     offsets, cov = laplace_samples(jac, res, samples, inflation=inflation, generator=generator,
                                    clusters=frames if covariance == "frames" else None)
-    other = laplace_samples(jac, res, 1, clusters=None if covariance == "frames" else frames)[1]
+    other = fit_covariance(jac, res, clusters=None if covariance == "frames" else frames)
     drawn = perturb(best64, offsets)
     s_rot, s_trans = _predict(problem64, drawn, n_frames, first, fps)  # (M, T', 3, 3)
     sample_iou = np.stack([iou(hard_silhouettes(fitted.problem, s_rot[m:m + 1], s_trans[m:m + 1])[0],
