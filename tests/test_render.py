@@ -6,8 +6,13 @@ from scipy.spatial import ConvexHull
 
 from torchfit import render
 from torchfit.camera import Camera, project
-from torchfit.render import (RenderMesh, coverage_from_lines, crop_windows, full_window,
-                             render_silhouettes)
+from torchfit.render import (
+    RenderMesh,
+    coverage_from_lines,
+    crop_windows,
+    full_window,
+    render_silhouettes,
+)
 from torchfit.rotation import axis_angle_to_quat, quat_to_matrix
 from torchfit.shape import load_shape
 
@@ -120,6 +125,23 @@ def test_rasteriser_gradcheck_float64():
     offsets = -3.0 + torch.rand(2, 2, 5, dtype=F64) + 3.5 * (torch.cos(angles) + torch.sin(angles))
     lines = torch.stack((torch.cos(angles), torch.sin(angles), offsets), -1).requires_grad_()
     assert torch.autograd.gradcheck(lambda x: coverage_from_lines(x, 7, 6, sigma=0.8, budget=200), (lines,))
+
+
+def test_coverage_jvp_matches_finite_differences_float64():
+    torch.manual_seed(1)
+    angles = torch.rand(3, 2, 5, dtype=F64) * 6.28
+    offsets = -3.0 + torch.rand(3, 2, 5, dtype=F64) + 3.5 * (torch.cos(angles) + torch.sin(angles))
+    lines = torch.stack((torch.cos(angles), torch.sin(angles), offsets), -1)
+    tangents = torch.randn(3, 4, 2, 5, 3, dtype=F64)
+    coverage, jvp = render.coverage_jvp(lines, tangents, 7, 6, sigma=0.8, budget=300)  # chunks of 1
+    assert torch.allclose(coverage, coverage_from_lines(lines, 7, 6, sigma=0.8))
+    eps = 1e-6
+    for m in range(4):
+        ahead = coverage_from_lines(lines + eps * tangents[:, m], 7, 6, sigma=0.8)
+        behind = coverage_from_lines(lines - eps * tangents[:, m], 7, 6, sigma=0.8)
+        assert torch.allclose(jvp[:, m], (ahead - behind) / (2 * eps), atol=1e-8), m
+    with pytest.raises(ValueError, match="tangents must have shape"):
+        render.coverage_jvp(lines, tangents[:, :, :1], 7, 6, sigma=0.8)
 
 
 def test_end_to_end_gradcheck_from_initial_state_to_silhouette_loss():
