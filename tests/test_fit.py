@@ -68,6 +68,14 @@ def test_fit_is_deterministic_for_a_seed(tmp_path):
     assert first["params"] == second["params"]
 
 
+def test_default_search_config_is_the_dataclass_default():
+    from torchfit.run import _search_settings
+    from torchfit.search import SearchSettings
+
+    cfg = _compose(["experiment=tshape"])
+    assert _search_settings(cfg.search) == SearchSettings(seed=int(cfg.seed))
+
+
 def test_mistyped_key_fails():
     with pytest.raises(ConfigCompositionException, match="orientationz"):
         _compose(["experiment=fit", "search.orientationz=5"])

@@ -83,15 +83,22 @@ def mask_moments(masks: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         covariance: (T, 2, 2) pixels².
     """
     height, width = masks.shape[-2:]
-    v, u = torch.meshgrid(torch.arange(height, dtype=masks.dtype, device=masks.device),
-                          torch.arange(width, dtype=masks.dtype, device=masks.device), indexing="ij")
-    area = masks.sum(dim=(-2, -1))
+    u = torch.arange(width, dtype=masks.dtype, device=masks.device)
+    v = torch.arange(height, dtype=masks.dtype, device=masks.device)
+    flat = masks.reshape(-1, height, width)
+    # sums over each row first (matrix products), then over the rows: no (T, H, W) temporaries
+    rows = flat @ torch.stack((torch.ones_like(u), u), -1)  # (T, H, 2): sum m, sum m u per row
+    area = rows[..., 0].sum(-1)
     safe = area.clamp(min=1e-12)
-    cu = (masks * u).sum(dim=(-2, -1)) / safe
-    cv = (masks * v).sum(dim=(-2, -1)) / safe
-    du, dv = u - cu[:, None, None], v - cv[:, None, None]
-    cov = torch.stack([
-        torch.stack([(masks * du * du).sum((-2, -1)), (masks * du * dv).sum((-2, -1))], -1),
-        torch.stack([(masks * du * dv).sum((-2, -1)), (masks * dv * dv).sum((-2, -1))], -1),
-    ], -2) / safe[:, None, None]
+    cu = rows[..., 1].sum(-1) / safe
+    cv = rows[..., 0] @ v / safe
+    du = u - cu[:, None]  # (T, W)
+    dv = v - cv[:, None]  # (T, H)
+    central = torch.bmm(flat, torch.stack((du, du * du), -1))  # (T, H, 2): sum m du, sum m du² per row
+    cov_uu = central[..., 1].sum(-1)
+    cov_uv = (central[..., 0] * dv).sum(-1)
+    cov_vv = (rows[..., 0] * dv * dv).sum(-1)
+    cov = torch.stack([torch.stack([cov_uu, cov_uv], -1), torch.stack([cov_uv, cov_vv], -1)], -2) / safe[:, None, None]
+    shape = masks.shape[:-2]
+    area, cu, cv, cov = area.reshape(shape), cu.reshape(shape), cv.reshape(shape), cov.reshape(*shape, 2, 2)
     return area, torch.stack((cu, cv), -1), cov

@@ -88,7 +88,7 @@ class SearchSettings:
     anchor_steps: int = 40
     seed_frames: int = 10
     survivors: int = 48
-    stages: tuple = ((0.35, 32, 1.5, 40, 0.5), (0.7, 32, 1.0, 30, 0.5), (1.0, 48, 0.7, 30, 0.5))
+    stages: tuple = ((0.35, 32, 1.5, 25, 0.5), (0.7, 32, 1.0, 20, 0.34))
     max_spin: float = 40.0
     coarse_rotation_step: float = 0.5
     final: int = 6
