@@ -160,7 +160,7 @@ def _plots(out_dir: Path, per_frame: dict, curve: list) -> None:
     if curve:
         fig, ax = plt.subplots(figsize=(6, 3.5))
         ax.semilogy(curve)
-        ax.set_xlabel("optimiser step (Adam stages, then L-BFGS evaluations)")
+        ax.set_xlabel("optimiser step (Adam stages, then Levenberg–Marquardt iterations)")
         ax.set_ylabel("best loss")
         ax.set_title("jumps where a stage adds frames or pixels", fontsize=9)
         ax.grid(alpha=0.3)

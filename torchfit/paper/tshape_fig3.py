@@ -119,7 +119,7 @@ def main(out_dir: Path, *, quick: bool = False, device="cpu", dtype=torch.float3
         quick: the small recording and the quick search (seconds; for tests).
         recording: a shipped T-handle recording (``quick`` uses ``tshape_small``).
         frames_shown: frames in the strips.
-        flip_iterations: L-BFGS iterations of the flipped candidate's local refit.
+        flip_iterations: Levenberg–Marquardt iterations (at most) of the flipped candidate's local refit.
 
     Returns:
         The summary (figures, losses, errors against the truth).
