@@ -12,8 +12,10 @@ Plan (each stage measured on the MuJoCo recordings; see experiments/fit/README.m
    simulated over the first frames and scored, and the best survive.
 4. *Refine*: Adam on all survivors as one batch — the whole state and the gravity angles —
    with a time curriculum (first frames first), coarse-to-fine crops and edge widths, and
-   successive halving of the candidates.
-5. *Report*: the distinct minima (modulo the shape's symmetry) with their losses, best first.
+   successive halving of the candidates; these stages integrate with a coarser RK4 step.
+5. *Polish and report*: Levenberg–Marquardt on the distinct minima (modulo the shape's
+   symmetry) over all frames, with the exact Jacobian by forward mode (:func:`refine`); the
+   minima with their losses, best first.
 """
 
 from __future__ import annotations
