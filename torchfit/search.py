@@ -399,21 +399,41 @@ def candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int
     return torch.where(torch.isfinite(loss), loss, torch.full_like(loss, float("inf")))
 
 
+def candidate_poses(problem: Problem, cands: Candidates, frames: int, effects: Sequence[Effect] = (),
+                    rotation_step: float | None = None) -> tuple[Tensor, Tensor]:
+    """(B, frames, 3, 3) rotations and (B, frames, 3) translations of the candidates' flights.
+
+    ``rotation_step`` bounds the RK4 step by the angle (radians) the fastest candidate turns in
+    one step (default ``problem.max_rotation_step``). The integration runs in the candidates'
+    dtype (the problem's mass properties and times are cast to it).
+    """
+    dtype = cands.com.dtype
+    body = problem.body
+    if body.com.dtype != dtype:
+        body = RigidBody(body.mass.to(dtype), body.com.to(dtype), body.inertia.to(dtype))
+    body, times, forces = apply_effects(effects, body, problem.times[:frames].to(dtype))
+    spin = float(cands.omega.detach().norm(dim=-1).max()) if len(cands) else 0.0
+    frame_dt = float(times[..., 1].detach().max() - times[..., 0].detach().max()) if times.shape[-1] > 1 else 1.0
+    turn = problem.max_rotation_step if rotation_step is None else rotation_step
+    step = min(frame_dt, max(turn / max(spin, 1e-6), frame_dt / 8))
+    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step)
+    return traj.rot, traj.position
+
+
 def candidate_lines(problem: Problem, cands: Candidates, frames: int, crop: int,
                     effects: Sequence[Effect] = (), rotation_step: float | None = None) -> Tensor:
     """(B, frames, P, K, 3) the candidates' silhouette edge lines in the frames' crop windows.
 
-    ``rotation_step`` bounds the RK4 step by the angle (radians) the fastest candidate turns in
-    one step (default ``problem.max_rotation_step``).
+    ``rotation_step``: see :func:`candidate_poses`.
     """
-    body, times, forces = apply_effects(effects, problem.body, problem.times[:frames])
-    spin = float(cands.omega.detach().norm(dim=-1).max()) if len(cands) else 0.0
-    frame_dt = float(times[1].detach() - times[0].detach()) if len(times) > 1 else 1.0
-    turn = problem.max_rotation_step if rotation_step is None else rotation_step
-    step = min(frame_dt, max(turn / max(spin, 1e-6), frame_dt / 8))
-    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step)
-    windows = problem.windows(crop)[:frames].expand(len(cands), frames, 3)
-    return silhouette_lines(problem.mesh, problem.camera, traj.rot, traj.position, windows, lens_model(effects))
+    rot, position = candidate_poses(problem, cands, frames, effects, rotation_step)
+    return _pose_lines(problem, rot, position, crop, effects)
+
+
+def _pose_lines(problem: Problem, rot: Tensor, position: Tensor, crop: int, effects: Sequence[Effect]) -> Tensor:
+    """(B, F, P, K, 3) edge lines of (B, F) poses in the first F frames' crop windows."""
+    windows = problem.windows(crop)[: rot.shape[1]].expand(rot.shape[0], rot.shape[1], 3)
+    return silhouette_lines(problem.mesh, problem.camera, rot, position, windows, lens_model(effects))
 
 
 def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float | None,
@@ -451,6 +471,7 @@ def _adam(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: fl
 
 
 SCALES = {"delta": 0.05, "com": 0.01, "com_velocity": 0.05, "omega": 0.5, "gravity_angles": 0.02}
+_FD_STEP = 1e-4  # central-difference step of the flight's Jacobian, in SCALES units (float64)
 
 
 def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iterations: int,
@@ -459,10 +480,12 @@ def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iter
     """Local refinement of candidates (and of the effects' parameters) on all frames, in place.
 
     Levenberg-Marquardt on the silhouette loss, which is a sum of squares (pixel differences
-    and centroid offsets). The Jacobian comes exact and whole from one forward-mode pass: the
-    batch holds one copy of each candidate per parameter, each copy carrying that parameter's
-    tangent through the integrator and the projection, and :func:`coverage_jvp` carries all of
-    them through the pixels at once. Near an optimum Gauss-Newton converges in a few
+    and centroid offsets). The whole Jacobian comes from one batched pass
+    (:func:`_normal_equations`): the flight's derivatives by central differences in float64
+    (one pair of copies of each candidate per parameter), forward mode through the projection,
+    and :func:`coverage_jvp` for all parameters through the pixels at once (an effect
+    parameter's column by forward mode through the whole chain). Near an optimum Gauss-Newton
+    converges in a few
     iterations, where L-BFGS on the summed loss of the batch needed a hundred evaluations
     (its shared line search moved every candidate by the worst one's step).
 
@@ -587,14 +610,29 @@ def _normal_equations(problem: Problem, cands: Candidates, crop: int, sigma: flo
     sizes = [getattr(cands, name).shape[1] for name in SCALES]
     own = sum(sizes)
     dtype, device = cands.com.dtype, cands.com.device
-    with torch.no_grad(), fwAD.dual_level():
-        # one copy of each candidate per own parameter, that copy carrying its tangent
-        tangent = torch.eye(own, dtype=dtype, device=device).repeat(count, 1)
-        unit = fwAD.make_dual(torch.zeros(count * own, own, dtype=dtype, device=device), tangent)
-        fields = {f: getattr(cands, f).detach().repeat_interleave(own, 0) for f in cands.fields()}
+    with torch.no_grad():
+        # the poses' derivatives by central differences of the flight in float64 (smooth in the
+        # parameters, six times cheaper than forward mode through the integrator), then forward
+        # mode through the projection, where the contour's combinatorics must stay fixed
+        step = _FD_STEP
+        offsets = torch.cat((torch.zeros(1, own, dtype=torch.float64, device=device),
+                             step * torch.eye(own, dtype=torch.float64, device=device),
+                             -step * torch.eye(own, dtype=torch.float64, device=device)))  # (1 + 2 own, own)
+        copies = len(offsets)
+        fields = {f: getattr(cands, f).detach().double().repeat_interleave(copies, 0) for f in cands.fields()}
+        unit = offsets.repeat(count, 1)
         for (name, scale), part in zip(SCALES.items(), unit.split(sizes, dim=1)):
             fields[name] = fields[name] + scale * part
-        dual = fwAD.unpack_dual(candidate_lines(problem, Candidates(**fields), frames, crop, effects))
+        rot, position = candidate_poses(problem, Candidates(**fields), frames, effects)
+        rot, position = rot.unflatten(0, (count, copies)), position.unflatten(0, (count, copies))
+        d_rot = (rot[:, 1:1 + own] - rot[:, 1 + own:]) / (2 * step)  # (B, own, F, 3, 3)
+        d_position = (position[:, 1:1 + own] - position[:, 1 + own:]) / (2 * step)
+    with torch.no_grad(), fwAD.dual_level():
+        dual_rot = fwAD.make_dual(rot[:, :1].expand_as(d_rot).flatten(0, 1).to(dtype).contiguous(),
+                                  d_rot.flatten(0, 1).to(dtype).contiguous())
+        dual_position = fwAD.make_dual(position[:, :1].expand_as(d_position).flatten(0, 1).to(dtype).contiguous(),
+                                       d_position.flatten(0, 1).to(dtype).contiguous())
+        dual = fwAD.unpack_dual(_pose_lines(problem, dual_rot, dual_position, crop, effects))
         lines = dual.primal[::own]  # (B, F, P, K, 3)
         tangents = [dual.tangent.unflatten(0, (count, own)).transpose(1, 2)]  # (B, F, own, P, K, 3)
         for param, flat in shared:
