@@ -74,6 +74,33 @@ def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor, centroid_
     return (per_frame * weights).sum(-1) / weights.sum().clamp(min=1e-12)
 
 
+def coverage_residuals(coverage: Tensor, target: Tensor, weights: Tensor, centroid_weight: float = 1.0) -> Tensor:
+    """The terms of :func:`silhouette_loss` as residuals: their squared sum is the loss.
+
+    Args:
+        coverage: (B, T, h, w) rendered coverage.
+        target: (T, h, w) observed coverage on the same grids.
+        weights: (T,) frame weights (0 for frames left out).
+        centroid_weight: weight of the centroid term.
+
+    Returns:
+        (B, T, h w + 2): per frame the coverage differences scaled by ``sqrt(w_t / (h w Σw))``,
+        then the centroid offset (crop units) scaled by ``sqrt(centroid_weight w_t / Σw)``.
+    """
+    height, width = coverage.shape[-2:]
+    share = weights / weights.sum().clamp(min=1e-12)  # (T,)
+    pixels = (coverage - target) * (share / (height * width)).sqrt()[:, None, None]
+    rows = torch.linspace(0, 1, height, dtype=coverage.dtype, device=coverage.device)
+    cols = torch.linspace(0, 1, width, dtype=coverage.dtype, device=coverage.device)
+
+    def centroid(image: Tensor) -> Tensor:
+        mass = image.sum(dim=(-2, -1)).clamp(min=1e-6)
+        return torch.stack(((image.sum(-2) * cols).sum(-1), (image.sum(-1) * rows).sum(-1)), -1) / mass[..., None]
+
+    offset = (centroid(coverage) - centroid(target)) * (centroid_weight * share).sqrt()[:, None]  # (B, T, 2)
+    return torch.cat((pixels.flatten(-2), offset), -1)
+
+
 def mask_moments(masks: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Area, centroid and second central moments of (T, H, W) masks.
 

@@ -334,7 +334,7 @@ def coverage_jvp(lines: Tensor, tangents: Tensor, height: int, width: int, *, si
                          f"got {tuple(tangents.shape)}")
     inv_sigma = 1.0 / sigma
     basis = _basis(height, width, lines)
-    step = max(1, budget // max(parts * edges * 3 * height * width, 1))
+    step = _chunk_size(lines, height, width, budget // 3)  # the features hold 3 values per edge
     coverage, jvp = [], []
     for i in range(0, count, step):
         dist, arg = _distances(lines[i:i + step], height, width)  # (n, P, H, W)

@@ -14,8 +14,7 @@ Plan (each stage measured on the MuJoCo recordings; see experiments/fit/README.m
    with a time curriculum (first frames first), coarse-to-fine crops and edge widths, and
    successive halving of the candidates; these stages integrate with a coarser RK4 step.
 5. *Polish and report*: Levenberg–Marquardt on the distinct minima (modulo the shape's
-   symmetry) over all frames, with the exact Jacobian by forward mode (:func:`refine`); the
-   minima with their losses, best first.
+   symmetry) over all frames (:func:`refine`); the minima with their losses, best first.
 """
 
 from __future__ import annotations
@@ -34,7 +33,7 @@ from torch.nn.utils import parametrize
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
 from .effects import Effect, apply_effects, lens_model
-from .losses import mask_moments, sample_targets, silhouette_loss
+from .losses import coverage_residuals, mask_moments, sample_targets, silhouette_loss
 from .render import (
     RenderMesh,
     coverage_from_lines,
@@ -53,7 +52,7 @@ from .rotation import (
 from .shape import Shape
 
 __all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "candidate_losses", "candidate_silhouettes",
-           "estimate_track", "fit", "refine", "so3_grid"]
+           "estimate_track", "fit", "refine", "rk4_step", "so3_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -412,12 +411,20 @@ def candidate_poses(problem: Problem, cands: Candidates, frames: int, effects: S
     if body.com.dtype != dtype:
         body = RigidBody(body.mass.to(dtype), body.com.to(dtype), body.inertia.to(dtype))
     body, times, forces = apply_effects(effects, body, problem.times[:frames].to(dtype))
-    spin = float(cands.omega.detach().norm(dim=-1).max()) if len(cands) else 0.0
-    frame_dt = float(times[..., 1].detach().max() - times[..., 0].detach().max()) if times.shape[-1] > 1 else 1.0
-    turn = problem.max_rotation_step if rotation_step is None else rotation_step
-    step = min(frame_dt, max(turn / max(spin, 1e-6), frame_dt / 8))
+    step = rk4_step(problem, cands.omega, times, rotation_step)
     traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step)
     return traj.rot, traj.position
+
+
+def rk4_step(problem: Problem, omega: Tensor, times: Tensor, rotation_step: float | None = None) -> float:
+    """The fixed RK4 step (seconds) for candidates spinning at ``omega`` (B, 3) over ``times``
+    ((T,) or (B, T)): the fastest turns at most ``rotation_step`` radians per step (default
+    ``problem.max_rotation_step``), and the step lies between an eighth of the frame interval
+    and the whole of it."""
+    spin = float(omega.detach().norm(dim=-1).max()) if omega.numel() else 0.0
+    frame_dt = float(times[..., 1].detach().max() - times[..., 0].detach().max()) if times.shape[-1] > 1 else 1.0
+    turn = problem.max_rotation_step if rotation_step is None else rotation_step
+    return min(frame_dt, max(turn / max(spin, 1e-6), frame_dt / 8))
 
 
 def candidate_lines(problem: Problem, cands: Candidates, frames: int, crop: int,
@@ -474,6 +481,17 @@ SCALES = {"delta": 0.05, "com": 0.01, "com_velocity": 0.05, "omega": 0.5, "gravi
 _FD_STEP = 1e-4  # central-difference step of the flight's Jacobian, in SCALES units (float64)
 
 
+def _shifted(cands: Candidates, unit: Tensor) -> Candidates:
+    """Candidates moved by ``unit`` (B r, 14) in ``SCALES`` units, each of the B candidates
+    repeated r times (consecutive rows)."""
+    repeats = len(unit) // max(len(cands), 1)
+    fields = {f: getattr(cands, f).detach().repeat_interleave(repeats, 0) for f in cands.fields()}
+    sizes = [fields[name].shape[1] for name in SCALES]
+    for (name, scale), part in zip(SCALES.items(), unit.split(sizes, dim=1)):
+        fields[name] = fields[name] + scale * part
+    return Candidates(**fields)
+
+
 def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iterations: int,
            effects: Sequence[Effect] = (), effect_scales: dict[str, float] | None = None,
            curve: list | None = None, tolerance: float = 1e-4, abandon: float = 3.0) -> Tensor:
@@ -485,9 +503,8 @@ def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iter
     (one pair of copies of each candidate per parameter), forward mode through the projection,
     and :func:`coverage_jvp` for all parameters through the pixels at once (an effect
     parameter's column by forward mode through the whole chain). Near an optimum Gauss-Newton
-    converges in a few
-    iterations, where L-BFGS on the summed loss of the batch needed a hundred evaluations
-    (its shared line search moved every candidate by the worst one's step).
+    converges in a few iterations, where L-BFGS on the summed loss of the batch needed a
+    hundred evaluations (its shared line search moved every candidate by the worst one's step).
 
     Parameters are scaled to comparable units (``SCALES``; ``effect_scales`` maps an effect
     parameter's name to its scale, default 0.1). Each candidate has its own damping and
@@ -514,9 +531,7 @@ def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iter
     curve = [] if curve is None else curve
     scales = effect_scales or {}
     dtype, device = cands.com.dtype, cands.com.device
-    start = {name: getattr(cands, name).detach().clone() for name in SCALES}
-    sizes = [start[n].shape[1] for n in SCALES]
-    own = sum(sizes)
+    own = sum(getattr(cands, name).shape[1] for name in SCALES)
     batch = len(cands)
     # each effect parameter p becomes p0 + scale * u with u (starting at 0) the optimised unit
     scaled = [(effect, name) for effect in effects for name, _ in list(effect.named_parameters())]
@@ -527,12 +542,8 @@ def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iter
               for index in range(effect.parametrizations[name].original.numel())]
 
     def make(index: Tensor, unit: Tensor) -> Candidates:
-        """Candidates ``index`` at ``unit`` (rows: each candidate ``len(unit) / len(index)`` times)."""
-        reps = len(unit) // max(len(index), 1)
-        fields = {f: getattr(cands, f).detach()[index].repeat_interleave(reps, 0) for f in cands.fields()}
-        for (name, scale), part in zip(SCALES.items(), unit.split(sizes, dim=1)):
-            fields[name] = start[name][index].repeat_interleave(reps, 0) + scale * part
-        return Candidates(**fields)
+        """Candidates ``index`` (unchanged until the end) moved by their (n, own) ``unit``."""
+        return _shifted(cands.select(index), unit)
 
     def set_shared(values: Tensor) -> None:
         for (param, index), value in zip(shared, values):
@@ -586,8 +597,9 @@ def refine(problem: Problem, cands: Candidates, *, crop: int, sigma: float, iter
                 # candidates far behind the best are not the answer: stop polishing them
                 active &= loss <= abandon * loss.min()
                 curve.append(float(loss.min()))
-            for (name, scale), part in zip(SCALES.items(), unit.split(sizes, dim=1)):
-                setattr(cands, name, start[name] + scale * part)
+            refined = _shifted(cands, unit)
+            for name in SCALES:
+                setattr(cands, name, getattr(refined, name))
             final = candidate_losses(problem, cands, frames, crop, sigma, effects)
     finally:
         for effect, name in scaled:
@@ -607,8 +619,7 @@ def _normal_equations(problem: Problem, cands: Candidates, crop: int, sigma: flo
         (B,) losses, (B, M, M) JᵀJ and (B, M) Jᵀr, float64; M = 14 + len(shared).
     """
     count, frames = len(cands), len(problem.times)
-    sizes = [getattr(cands, name).shape[1] for name in SCALES]
-    own = sum(sizes)
+    own = sum(getattr(cands, name).shape[1] for name in SCALES)
     dtype, device = cands.com.dtype, cands.com.device
     with torch.no_grad():
         # the poses' derivatives by central differences of the flight in float64 (smooth in the
@@ -619,11 +630,8 @@ def _normal_equations(problem: Problem, cands: Candidates, crop: int, sigma: flo
                              step * torch.eye(own, dtype=torch.float64, device=device),
                              -step * torch.eye(own, dtype=torch.float64, device=device)))  # (1 + 2 own, own)
         copies = len(offsets)
-        fields = {f: getattr(cands, f).detach().double().repeat_interleave(copies, 0) for f in cands.fields()}
-        unit = offsets.repeat(count, 1)
-        for (name, scale), part in zip(SCALES.items(), unit.split(sizes, dim=1)):
-            fields[name] = fields[name] + scale * part
-        rot, position = candidate_poses(problem, Candidates(**fields), frames, effects)
+        wide = Candidates(*(getattr(cands, f).detach().double() for f in cands.fields()))
+        rot, position = candidate_poses(problem, _shifted(wide, offsets.repeat(count, 1)), frames, effects)
         rot, position = rot.unflatten(0, (count, copies)), position.unflatten(0, (count, copies))
         d_rot = (rot[:, 1:1 + own] - rot[:, 1 + own:]) / (2 * step)  # (B, own, F, 3, 3)
         d_position = (position[:, 1:1 + own] - position[:, 1 + own:]) / (2 * step)
@@ -644,6 +652,7 @@ def _normal_equations(problem: Problem, cands: Candidates, crop: int, sigma: flo
             finally:
                 param[0].tangent = None
             tangents.append(dual.tangent.unsqueeze(2))
+    with torch.no_grad():
         tangents = torch.nan_to_num(torch.cat(tangents, 2))
         coverage, jvp = coverage_jvp(lines.flatten(0, 1), tangents.flatten(0, 1), crop, crop, sigma=sigma)
         return _least_squares(problem, crop, coverage.unflatten(0, (count, frames)), jvp.unflatten(0, (count, frames)))
@@ -652,45 +661,27 @@ def _normal_equations(problem: Problem, cands: Candidates, crop: int, sigma: flo
 def _least_squares(problem: Problem, crop: int, coverage: Tensor, jvp: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The silhouette loss as a sum of squares: (B,) loss, (B, M, M) JᵀJ, (B, M) Jᵀr (float64).
 
+    The residuals are :func:`torchfit.losses.coverage_residuals`, linearised along the coverage's
+    M derivatives by forward mode (one ``jvp`` per direction, vectorised).
+
     Args:
         coverage: (B, F, h, w) rendered coverage.
         jvp: (B, F, M, h, w) its derivatives along the M parameters.
-
-    The residuals reproduce :func:`torchfit.losses.silhouette_loss` (its centroid weight 1):
-    per used frame, the pixel differences times ``sqrt(1 / (W h w))`` and the centroid offset
-    times ``sqrt(1 / W)``, ``W`` the number of used frames.
     """
-    batch, frames, height, width = coverage.shape
-    weights = problem.used[:frames].to(coverage.dtype)
-    total = weights.sum().clamp(min=1e-12)
-    target = problem.targets(crop)[:frames]
-    pixel_scale = (weights / (total * height * width)).sqrt()  # (F,)
-    residual = (coverage - target) * pixel_scale[:, None, None]
-    jac = (jvp * pixel_scale[:, None, None, None]).flatten(0, 1).flatten(-2)  # (B*F, M, hw)
-    jtj = torch.bmm(jac, jac.transpose(1, 2)).unflatten(0, (batch, frames)).double().sum(1)
-    jtr = torch.bmm(jac, residual.flatten(0, 1).flatten(-2).unsqueeze(-1)).unflatten(0, (batch, frames)).double().sum((1, 3))
-    loss = residual.square().sum((1, 2, 3)).double()
-    # centroid term, in crop sizes (silhouette_loss's linspace(0, 1) grid)
-    rows = torch.linspace(0, 1, height, dtype=coverage.dtype, device=coverage.device)
-    cols = torch.linspace(0, 1, width, dtype=coverage.dtype, device=coverage.device)
-    grid = torch.stack(torch.broadcast_tensors(cols[None, :], rows[:, None]), -1).flatten(0, 1)  # (hw, 2)
+    frames = coverage.shape[1]
+    target, weights = problem.targets(crop)[:frames], problem.used[:frames].to(coverage.dtype)
 
-    def centroid(image: Tensor) -> tuple[Tensor, Tensor]:
-        mass = image.flatten(-2).sum(-1)
-        return image.flatten(-2) @ grid / mass.clamp(min=1e-6)[..., None], mass
+    def residuals(image: Tensor) -> Tensor:
+        return coverage_residuals(image, target, weights)
 
-    mine, mass = centroid(coverage)  # (B, F, 2)
-    theirs, _ = centroid(target)
-    dmass = jvp.flatten(-2).sum(-1)  # (B, F, M)
-    dcentroid = (jvp.flatten(-2) @ grid - mine.unsqueeze(2) * dmass.unsqueeze(-1)) / mass.clamp(min=1e-6)[..., None, None]
-    dcentroid = torch.where((mass > 1e-6)[..., None, None], dcentroid, torch.zeros_like(dcentroid))
-    centroid_scale = (weights / total).sqrt()[:, None]
-    offset = (mine - theirs) * centroid_scale  # (B, F, 2)
-    dcentroid = dcentroid * centroid_scale[:, None]  # (B, F, M, 2)
-    jtj = jtj + torch.einsum("bfmk,bfnk->bmn", dcentroid, dcentroid).double()
-    jtr = jtr + torch.einsum("bfmk,bfk->bm", dcentroid, offset).double()
-    loss = loss + offset.square().sum((1, 2)).double()
-    return loss, jtj, jtr
+    def along(tangent: Tensor) -> Tensor:
+        return torch.func.jvp(residuals, (coverage,), (tangent,))[1]
+
+    residual = residuals(coverage)  # (B, F, R)
+    jac = torch.func.vmap(along, in_dims=2, out_dims=2)(jvp)  # (B, F, M, R)
+    jtj = torch.einsum("bfmr,bfnr->bfmn", jac, jac).double().sum(1)
+    jtr = torch.einsum("bfmr,bfr->bfm", jac, residual).double().sum(1)
+    return residual.square().sum((1, 2)).double(), jtj, jtr
 
 
 def _joint_solve(damped: Tensor, jtr: Tensor, own: int) -> Tensor:

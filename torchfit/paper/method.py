@@ -51,7 +51,7 @@ from ..camera import tilt_roll_from_direction
 from ..dynamics import integrate
 from ..render import render_silhouettes
 from ..rotation import axis_angle_to_quat, quat_multiply, quat_to_matrix
-from ..search import Candidates, FitResult, Problem
+from ..search import Candidates, FitResult, Problem, rk4_step
 
 __all__ = [
     "PARAMETERS",
@@ -161,10 +161,7 @@ def _candidates(base: Tensor, params: Tensor) -> Candidates:
 
 def _step_size(problem: Problem, omega: Tensor) -> float:
     """The RK4 step of :func:`torchfit.search.candidate_losses`: at most 0.2 rad of turn per step."""
-    times = problem.times
-    frame_dt = float(times[1] - times[0]) if len(times) > 1 else 1.0
-    spin = float(omega.detach().norm(dim=-1).max())
-    return min(frame_dt, max(problem.max_rotation_step / max(spin, 1e-6), frame_dt / 8))
+    return rk4_step(problem, omega, problem.times)
 
 
 def _trajectory(problem: Problem, base: Tensor, params: Tensor, step: float):

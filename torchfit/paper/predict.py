@@ -33,9 +33,10 @@ import torch
 from torch import Tensor
 
 from ..dynamics import integrate
+from ..losses import coverage_residuals
 from ..render import render_silhouettes
 from ..report import score_against_truth
-from ..search import Candidates, Problem
+from ..search import Candidates, Problem, rk4_step
 from ._recording import (
     as_result,
     candidate_poses,
@@ -63,10 +64,7 @@ PROBE_SPIN = 0.05  # rad/s, the spin error whose effect past the clip is shown f
 
 def step_size(problem: Problem, cands: Candidates, frames: int) -> float:
     """The search's RK4 step for these candidates (fixed here so the residuals are smooth in p)."""
-    times = problem.times[:frames]
-    spin = float(cands.omega.detach().norm(dim=-1).max())
-    frame_dt = float(times[1] - times[0]) if len(times) > 1 else 1.0
-    return min(frame_dt, max(problem.max_rotation_step / max(spin, 1e-6), frame_dt / 8))
+    return rk4_step(problem, cands.omega, problem.times[:frames])
 
 
 def silhouette_residuals(problem: Problem, cands: Candidates, *, crop: int, sigma: float,
@@ -91,18 +89,7 @@ def silhouette_residuals(problem: Problem, cands: Candidates, *, crop: int, sigm
     windows = problem.windows(crop).expand(len(cands), frames, 3)
     cover = render_silhouettes(problem.mesh, problem.camera, traj.rot, traj.position, windows,
                                size=(crop, crop), sigma=sigma)  # (B, T, h, w)
-    target = problem.targets(crop)
-    weights = problem.used.to(cover.dtype)
-    share = weights / weights.sum().clamp(min=1e-12)  # (T,)
-    pixels = (cover - target) * (share / crop**2).sqrt()[:, None, None]
-    grid = torch.linspace(0, 1, crop, dtype=cover.dtype, device=cover.device)
-
-    def centroid(image: Tensor) -> Tensor:
-        mass = image.sum(dim=(-2, -1)).clamp(min=1e-6)
-        return torch.stack(((image.sum(-2) * grid).sum(-1), (image.sum(-1) * grid).sum(-1)), -1) / mass[..., None]
-
-    offset = (centroid(cover) - centroid(target)) * (centroid_weight * share).sqrt()[:, None]  # (B, T, 2)
-    return torch.cat((pixels.flatten(2), offset), -1).flatten(1)
+    return coverage_residuals(cover, problem.targets(crop), problem.used.to(cover.dtype), centroid_weight).flatten(1)
 
 
 def perturb(cands: Candidates, offsets: Tensor) -> Candidates:
