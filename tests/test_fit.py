@@ -56,7 +56,7 @@ def test_fit_small_recording_end_to_end(tmp_path):
     assert len(per_frame["frame"]) == 12 and per_frame["time"][0] == 0.0
     for name in ("iou.png", "loss.png", "overlay.mp4", "contact_sheet.png"):
         assert (tmp_path / name).stat().st_size > 0
-    # the quick search on a 160x120 clip: orientation found, silhouettes overlap well
+    # the quick search on the 320x240 tshape_small clip: orientation found, silhouettes overlap well
     assert content["truth"]["rotation_error_deg"] < 10.0
     assert content["mean_iou"] > 0.6
     assert result["candidates"][0]["loss"] <= min(c["loss"] for c in result["candidates"])

@@ -34,7 +34,7 @@ SMALL = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshap
 
 
 def _problem(dtype=torch.float32) -> tuple[Problem, dict]:
-    """tshape_small from its true masks (no segmentation): 12 frames of 160x120."""
+    """tshape_small from its true masks (no segmentation): 12 frames of 320x240."""
     truth = json.loads((SMALL / "truth.json").read_text())
     shape = load_shape(str(SMALL / "mesh.obj"), density=float(truth["object"]["density"]))
     camera = Camera.from_file(SMALL / "camera.json")

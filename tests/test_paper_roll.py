@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import math
 
 import cv2
@@ -133,7 +134,7 @@ def test_quick_config_runs_and_rectifies(tmp_path):
     assert json.loads((tmp_path / "summary.json").read_text()) == json.loads(json.dumps(summary))
     (row,) = summary["recordings"]
     assert row["true_roll_deg"] == 5.0 and row["true_tilt_deg"] == 10.0
-    # the quick search on the 12-frame 160x120 clip: roll within a few degrees (tilt is weak there)
+    # the quick search on the 12-frame tshape_small clip: roll within a few degrees (tilt is weak there)
     assert abs(row["roll_error_deg"]) < 3.0
     assert row["roll_error_deg"] == pytest.approx(row["roll_deg"] - 5.0)
     for name in summary["figures"]:
@@ -142,4 +143,6 @@ def test_quick_config_runs_and_rectifies(tmp_path):
     frames = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
     size = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
     capture.release()
-    assert frames == 12 and size == (160, 120)
+    camera = json.loads((Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+                         / "camera.json").read_text())
+    assert frames == 12 and size == (camera["width"], camera["height"])

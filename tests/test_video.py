@@ -12,6 +12,7 @@ from torchfit.camera import Camera
 from torchfit.video import (
     Observation,
     SegmentationSettings,
+    _segment,
     contact_sheet,
     load_observation,
     read_frames,
@@ -49,31 +50,63 @@ def write_video(path: Path, frames: np.ndarray, fps: float = 30.0) -> Path:
 
 # --- segmentation quality ------------------------------------------------------------
 
-# (median, worst frame) floors measured with experiments/segmentation_iou.py on the 640x480
-# recordings (H.264, crf 14); tshape_small (160x120, ~40 px objects) is a fixture for fast fit tests
+# (median, worst frame) floors, a little under the figures experiments/segmentation_iou.py
+# measures (H.264, crf 14, 4:2:0): tshape 0.949/0.911, tshape_intermediate 0.960/0.910,
+# box_fast 0.972/0.946, cylinder 0.976/0.956, tshape_small 0.965/0.955
 FLOORS = {
-    "tshape": (0.93, 0.87),
-    "tshape_intermediate": (0.94, 0.86),
-    "box_fast": (0.95, 0.93),
-    "cylinder": (0.96, 0.90),
-    "tshape_small": (0.85, 0.78),
+    "tshape": (0.94, 0.90),
+    "tshape_intermediate": (0.95, 0.90),
+    "box_fast": (0.96, 0.93),
+    "cylinder": (0.96, 0.94),
+    "tshape_small": (0.95, 0.94),
 }
 
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_segmentation_iou(observations, name):
+    """The issue's target: IoU >= 0.9 on every frame of every shipped recording, and the floors."""
     obs = observations[name]
     truth = true_masks(name)
     scores = iou(obs.masks, truth)[obs.used]
     median_floor, worst_floor = FLOORS[name]
+    assert obs.used.all()
     assert np.median(scores) >= median_floor
-    assert scores.min() >= worst_floor
+    assert scores.min() >= max(worst_floor, 0.9)
 
 
-@pytest.mark.parametrize("name", ["box_fast", "cylinder"])
-def test_iou_target_every_frame(observations, name):
-    obs = observations[name]
-    assert iou(obs.masks, true_masks(name))[obs.used].min() >= 0.9
+def _two_face_scene(frames=15, height=60, width=200, seed=0):
+    """A bar with a lit and a shaded face moving over grey, then over a dark green background.
+
+    Returns (T, H, W, 3) uint8 BGR frames and (T, H, W) true masks (pixel centre inside).
+    Over the dark half ``|B|`` is ~45 grey levels and the per-pixel 2-unknown fit is ill posed.
+    """
+    rng = np.random.default_rng(seed)
+    sub = 4  # supersampling of the partial pixel coverage
+    yy, xx = (np.mgrid[:height * sub, :width * sub] + 0.5) / sub - 0.5
+    background = np.empty((height, width, 3))
+    background[:, : width // 2] = (110, 120, 125)
+    background[:, width // 2:] = (22, 38, 26)
+    background += rng.normal(0, 6, background.shape)  # texture
+    albedo = np.array([82.0, 115.0, 148.0])  # wood, BGR
+    images, truths = [], []
+    for t in range(frames):
+        x0 = 5 + 10 * t
+        inside = (xx >= x0) & (xx < x0 + 40) & (yy >= 18.3) & (yy < 40.6)
+        shade = np.where(yy < 29.4, 1.0, 0.45)
+        coverage = inside.reshape(height, sub, width, sub).mean((1, 3))
+        colour = (inside * shade).reshape(height, sub, width, sub).mean((1, 3))[..., None] * albedo
+        image = background * (1 - coverage[..., None]) + colour + rng.normal(0, 2, background.shape)
+        images.append(np.clip(np.round(image), 0, 255).astype(np.uint8))
+        truths.append(coverage >= 0.5)
+    return np.stack(images), np.stack(truths)
+
+
+def test_local_shading_finds_a_shaded_face_over_a_dark_background():
+    frames, truth = _two_face_scene()
+    local = _segment(frames, SegmentationSettings())["masks"]
+    per_pixel = _segment(frames, SegmentationSettings(shading_radius=0.0))["masks"]
+    assert iou(local, truth).min() >= 0.93
+    assert iou(per_pixel, truth).min() < 0.7  # the scene exercises the ill-posed case
 
 
 @pytest.mark.parametrize("name", ["tshape", "box_fast"])
@@ -208,7 +241,7 @@ def test_static_video(tmp_path):
 
 def test_size_mismatch(tmp_path):
     camera = Camera.from_file(DATA / "tshape" / "camera.json")  # 640x480
-    with pytest.raises(ValueError, match="160x120 but the camera says 640x480"):
+    with pytest.raises(ValueError, match="320x240 but the camera says 640x480"):
         load_observation(DATA / "tshape_small" / "video.mp4", camera=camera)
     for t, mask in enumerate(true_masks("tshape_small")):
         cv2.imwrite(str(tmp_path / f"{t:03d}.png"), mask.astype(np.uint8) * 255)
@@ -270,3 +303,9 @@ def test_frame_flags(tmp_path):
     assert obs.reasons[9].startswith("area jumps") and obs.reasons[12] == "several large components"
     assert np.isnan(obs.boxes[3]).all()
     np.testing.assert_array_equal(obs.boxes[0], [5, 10, 10, 15])
+
+
+@pytest.mark.parametrize("field", ["noise_sigmas", "alpha_smoothing", "shading_radius", "chroma_weight"])
+def test_negative_settings_are_refused(field):
+    with pytest.raises(ValueError, match=f"{field} must be >= 0, got -1.0"):
+        SegmentationSettings(**{field: -1.0})

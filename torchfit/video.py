@@ -10,11 +10,18 @@ the static scene:
    of the difference image (MAD based), opened with a small structuring element; the object
    seed is the largest connected component;
 3. boundary: motion blur and partial pixel coverage make the object's edge a mixture
-   ``I = a F + (1 - a) B``. With the object's colour ``F = s A`` (albedo direction ``A``,
-   estimated from confident object pixels, times an unknown shading ``s`` per pixel) each
-   pixel's coverage ``a`` is a 2-unknown least-squares fit, independent of shading. The mask
-   is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half covered
-   exactly at its position at that time. Closed, largest component, holes filled.
+   ``I = a F + (1 - a) B``. The object's colour is ``F = s A``: an albedo direction ``A``
+   (estimated from confident object pixels) times a shading ``s`` that differs between faces.
+   a. Per pixel, ``(a, u = a s)`` is a 2-unknown least-squares fit, independent of shading.
+      It rests on the colour angle between ``A`` and ``B`` (often ~15 degrees), that is on
+      chroma, which video stores at half resolution.
+   b. The shading is smooth on the object, so ``s`` is fitted locally instead: a Gaussian-
+      weighted least squares of ``u = a s`` over the neighbourhood. With ``F = s A`` known, the
+      coverage is the 1-unknown projection ``a = (I - B).(F - B) / |F - B|^2``. It uses the
+      brightness difference (full-resolution luma) as well as colour. Where the background is
+      too dark or too close to ``A`` in colour for step a, the shading comes from neighbours.
+   The mask is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half
+   covered exactly at its position at that time. Closed, largest component, holes filled.
 
 Frames that should not be fitted keep their place in every per-frame array and are flagged
 ``used=False`` with a reason. Segmentation results are cached in ``cache_dir``.
@@ -47,7 +54,7 @@ __all__ = [
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
-_CACHE_VERSION = 2
+_CACHE_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -60,6 +67,8 @@ class SegmentationSettings:
         alpha_threshold: coverage at which a pixel counts as object (0.5: the edge position
             at the frame time for a centred exposure).
         alpha_smoothing: Gaussian sigma (pixels) applied to the coverage before thresholding.
+        shading_radius: Gaussian sigma (pixels) of the neighbourhood the local shading is
+            fitted over (0: no local shading, the per-pixel 2-unknown fit only).
         chroma_weight: weight of the two colour-difference channels against luma when the
             coverage is solved. Video codecs store colour at half resolution (4:2:0), so its
             edges are blurred; 0.5 trusts full-resolution luma more without dropping colour.
@@ -76,6 +85,7 @@ class SegmentationSettings:
     noise_sigmas: float = 6.0
     alpha_threshold: float = 0.5
     alpha_smoothing: float = 1.0
+    shading_radius: float = 1.5
     chroma_weight: float = 0.5
     morph_radius: int = 1
     min_area: int = 6
@@ -88,7 +98,7 @@ class SegmentationSettings:
             raise ValueError(
                 f'Invalid method "{self.method}". Must be one of {", ".join(BACKGROUND_METHODS)}'
             )
-        for name in ("noise_sigmas", "alpha_smoothing", "chroma_weight"):
+        for name in ("noise_sigmas", "alpha_smoothing", "shading_radius", "chroma_weight"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 < self.alpha_threshold < 1.0:
@@ -325,6 +335,43 @@ def _luma_chroma(bgr: np.ndarray, chroma_weight: float) -> np.ndarray:
     return np.stack([luma, chroma_weight * (bgr[..., 0] - luma), chroma_weight * (bgr[..., 2] - luma)], -1)
 
 
+def _local_shading_coverage(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray,
+                            coverage: np.ndarray, shaded: np.ndarray, weight: np.ndarray,
+                            fallback: np.ndarray, radius: float) -> np.ndarray:
+    """Coverage with the shading fitted over a neighbourhood (step 3b of the module docstring).
+
+    Args:
+        diff: (H, W, 3) ``I - B`` in luma/chroma.
+        background: (H, W, 3) ``B`` in luma/chroma.
+        albedo: (3,) unit albedo direction ``A``.
+        coverage: (H, W) per-pixel coverage ``a`` of the 2-unknown fit.
+        shaded: (H, W) per-pixel ``u = a s`` of the same fit.
+        weight: (H, W) bool, pixels whose ``(a, u)`` are trusted (well posed, near the object).
+        fallback: (H, W) coverage to keep where the shading has no support or ``F ~ B``.
+        radius: Gaussian sigma (pixels) of the neighbourhood.
+
+    Returns:
+        (H, W) float32 coverage.
+
+    The local shading minimises ``sum_k g(x - k) w_k (u_k - a_k s)^2``, so
+    ``s(x) = G*(w a u) / G*(w a^2)``: mixed pixels count in proportion to their coverage, and
+    the background (``a ~ 0``) not at all. Where the near neighbourhood has too little
+    support, a 4x wider one is used.
+    """
+    a = np.clip(coverage, 0.0, 1.0)
+    w = weight.astype(np.float32)
+    numerator, denominator = (w * a * shaded).astype(np.float32), (w * a * a).astype(np.float32)
+    near = [cv2.GaussianBlur(x, (0, 0), radius) for x in (numerator, denominator)]
+    wide = [cv2.GaussianBlur(x, (0, 0), 4.0 * radius) for x in (numerator, denominator)]
+    shading = np.where(near[1] > 0.02, near[0] / np.maximum(near[1], 1e-9),
+                       wide[0] / np.maximum(wide[1], 1e-9))
+    contrast = shading[..., None] * albedo - background  # F - B, (H, W, 3)
+    contrast2 = (contrast**2).sum(-1)
+    projected = (diff * contrast).sum(-1) / np.maximum(contrast2, 1e-6)
+    supported = (wide[1] > 1e-3) & (contrast2 > 100.0)  # |F - B| > 10 grey levels
+    return np.where(supported, projected, fallback).astype(np.float32)
+
+
 def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached."""
     background_bgr = _estimate_background(frames, settings)
@@ -370,10 +417,18 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     for t in range(len(frames)):
         if not seeds[t].any():
             continue
+        d_dot_a = diff[t] @ albedo
         d_dot_b = (diff[t] * background).sum(-1)
-        coverage = (a_dot_b * (diff[t] @ albedo) - d_dot_b) / np.maximum(det, 1e-6)
+        coverage = (a_dot_b * d_dot_a - d_dot_b) / np.maximum(det, 1e-6)
         contrast = float(np.percentile(magnitude[t][seeds[t]], 90))
-        coverage = np.where(well_posed, coverage, magnitude[t] / max(contrast, 1e-6))
+        fallback = np.where(well_posed, coverage, magnitude[t] / max(contrast, 1e-6))
+        if settings.shading_radius > 0:
+            shaded = (b_dot_b * d_dot_a - a_dot_b * d_dot_b) / np.maximum(det, 1e-6)  # u = a s
+            weight = well_posed & region[t] & (coverage > 0.05)
+            coverage = _local_shading_coverage(diff[t], background, albedo, coverage, shaded,
+                                               weight, fallback, settings.shading_radius)
+        else:
+            coverage = fallback
         if settings.alpha_smoothing > 0:
             coverage = cv2.GaussianBlur(coverage.astype(np.float32), (0, 0), settings.alpha_smoothing)
         masks[t] = (coverage >= settings.alpha_threshold) & region[t]
