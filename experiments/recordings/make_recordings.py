@@ -38,11 +38,11 @@ import ast
 import dataclasses
 import json
 import math
-from fractions import Fraction
 import os
 import sys
 import time
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Optional, Sequence
 
