@@ -24,11 +24,13 @@ from pathlib import Path
 
 import numpy as np
 
-from torchfit.video import SegmentationSettings, load_observation
+from torchfit.video import SegmentationSettings
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "recordings"))
+sys.path.insert(0, str(HERE))
 import make_recordings as mr  # noqa: E402  (MuJoCo: the `recordings` extra)
+from segmentation_iou import frame_ious  # noqa: E402
 
 SETTINGS = {"per_pixel": SegmentationSettings(shading_radius=0.0), "local": SegmentationSettings()}
 
@@ -73,8 +75,7 @@ def blur_limit(spec) -> dict:
         data.qvel[:] = 0.0
         mj.mj_forward(model, data)
         renderer.update_scene(data, camera="cam")
-        seg = renderer.render()
-        return (seg[..., 1] == mr.MJ_OBJ_GEOM) & np.isin(seg[..., 0], scene.obj_geoms)
+        return mr.object_mask(renderer.render(), scene)
 
     try:
         ious = []
@@ -89,12 +90,9 @@ def blur_limit(spec) -> dict:
 
 def segmentation_iou(folder: Path) -> dict:
     """{setting: {median, worst}} of torchfit.video's masks against the true masks."""
-    with np.load(folder / "masks.npz") as data:
-        truth = data["masks"].astype(bool)
     out = {}
     for name, settings in SETTINGS.items():
-        masks = load_observation(folder / "video.mp4", camera=folder / "camera.json", settings=settings).masks
-        iou = (masks & truth).sum((1, 2)) / np.maximum((masks | truth).sum((1, 2)), 1)
+        iou, _ = frame_ious(folder, settings)
         out[name] = {"median": float(np.median(iou)), "worst": float(iou.min())}
     return out
 

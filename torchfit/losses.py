@@ -44,6 +44,15 @@ def sample_targets(masks: Tensor, windows: Tensor, size: tuple[int, int]) -> Ten
     return torch.stack(out)
 
 
+def _centroid(image: Tensor) -> Tensor:
+    """(..., h, w) coverage -> (..., 2) centroid (x, y) in crop units (0 to 1 across the crop)."""
+    height, width = image.shape[-2:]
+    rows = torch.linspace(0, 1, height, dtype=image.dtype, device=image.device)
+    cols = torch.linspace(0, 1, width, dtype=image.dtype, device=image.device)
+    mass = image.sum(dim=(-2, -1)).clamp(min=1e-6)
+    return torch.stack(((image.sum(-2) * cols).sum(-1), (image.sum(-1) * rows).sum(-1)), -1) / mass[..., None]
+
+
 def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor, centroid_weight: float = 1.0) -> Tensor:
     """Mean squared silhouette difference per candidate (the paper's SSD, per crop pixel), plus a
     centroid term: the squared distance between the rendered and the observed coverage
@@ -61,15 +70,7 @@ def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor, centroid_
     """
     per_frame = (coverage - target).square().mean(dim=(-2, -1))  # (B, T)
     if centroid_weight:
-        height, width = coverage.shape[-2:]
-        rows = torch.linspace(0, 1, height, dtype=coverage.dtype, device=coverage.device)
-        cols = torch.linspace(0, 1, width, dtype=coverage.dtype, device=coverage.device)
-
-        def centroid(image: Tensor) -> Tensor:
-            mass = image.sum(dim=(-2, -1)).clamp(min=1e-6)
-            return torch.stack(((image.sum(-2) * cols).sum(-1), (image.sum(-1) * rows).sum(-1)), -1) / mass[..., None]
-
-        offset = centroid(coverage) - centroid(target)  # (B, T, 2), crop sizes
+        offset = _centroid(coverage) - _centroid(target)  # (B, T, 2), crop sizes
         per_frame = per_frame + centroid_weight * offset.square().sum(-1)
     return (per_frame * weights).sum(-1) / weights.sum().clamp(min=1e-12)
 
@@ -90,14 +91,7 @@ def coverage_residuals(coverage: Tensor, target: Tensor, weights: Tensor, centro
     height, width = coverage.shape[-2:]
     share = weights / weights.sum().clamp(min=1e-12)  # (T,)
     pixels = (coverage - target) * (share / (height * width)).sqrt()[:, None, None]
-    rows = torch.linspace(0, 1, height, dtype=coverage.dtype, device=coverage.device)
-    cols = torch.linspace(0, 1, width, dtype=coverage.dtype, device=coverage.device)
-
-    def centroid(image: Tensor) -> Tensor:
-        mass = image.sum(dim=(-2, -1)).clamp(min=1e-6)
-        return torch.stack(((image.sum(-2) * cols).sum(-1), (image.sum(-1) * rows).sum(-1)), -1) / mass[..., None]
-
-    offset = (centroid(coverage) - centroid(target)) * (centroid_weight * share).sqrt()[:, None]  # (B, T, 2)
+    offset = (_centroid(coverage) - _centroid(target)) * (centroid_weight * share).sqrt()[:, None]  # (B, T, 2)
     return torch.cat((pixels.flatten(-2), offset), -1)
 
 

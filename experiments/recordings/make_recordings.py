@@ -695,6 +695,11 @@ class Scene:
 # --------------------------------------------------------------------------------------
 
 
+def object_mask(seg: np.ndarray, scene: "Scene") -> np.ndarray:
+    """(H, W) bool pixels of the thrown object in a (H, W, 2) MuJoCo segmentation render."""
+    return (seg[..., 1] == MJ_OBJ_GEOM) & np.isin(seg[..., 0], scene.obj_geoms)
+
+
 def principal_axes(inertia: np.ndarray):
     """(moments ascending, axes as columns): minor, intermediate, major."""
     evals, evecs = np.linalg.eigh(inertia)
@@ -901,7 +906,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             if maps is not None:
                 seg = np.round(cv2.remap(seg.astype(np.float32), maps[0], maps[1],
                                          cv2.INTER_NEAREST)).astype(np.int64)
-            masks[i] = (seg[..., 1] == MJ_OBJ_GEOM) & np.isin(seg[..., 0], scene.obj_geoms)
+            masks[i] = object_mask(seg, scene)
             R, t = scene.pose_cam(qp)
             Rs.append(R)
             tvecs.append(t)
