@@ -42,7 +42,7 @@ from .discover import (
 from .dynamics import RigidBody, integrate
 from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect
 from .losses import mask_moments
-from .render import RenderMesh, full_window, render_silhouettes
+from .render import RenderMesh, crop_windows, full_window, render_silhouettes
 from .residuals import (
     CHANNELS,
     UNITS,
@@ -60,9 +60,10 @@ from .search import (
     candidate_silhouettes,
     fit,
 )
+from .video import _boxes
 
 __all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EFFECT_SCALES", "VIDEO_EFFECTS", "VIDEO_SELECTION",
-           "VideoProblem", "discover_video"]
+           "VideoProblem", "discover_video", "render_residuals"]
 
 # Effects a silhouette can see. rolling_shutter needs a per-row time in the renderer (not done).
 VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
@@ -74,10 +75,11 @@ VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "win
 DEFAULT_CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", "time_scale", "lens_distortion")
 
 # Segmentation edge accuracy (pixels) in the noise floor: calibrated on the shipped recordings,
-# which hide nothing (experiments/discover/calibrate_noise.py: chi-squared per observation of the
-# baseline 0.43-0.92 at 0.2 px, 0.71-1.49 at 0.15 px, 0.08-0.17 at 0.5 px: 0.2 errs on the side of
-# no false alarm).
-EDGE_PX = 0.2
+# which hide nothing (experiments/discover/calibrate_noise.py, the rule: the grid value that brings
+# the largest chi-squared per observation of a baseline to about 1). With the refits' render at
+# crop 96, sigma 0.25: 0.36-1.02 at 0.15 px, 0.22-0.67 at 0.2 px, 0.61-1.67 at 0.1 px. (At crop 64,
+# sigma 0.5 the renderer's own corner bias was in the residuals: 0.43-0.92 at 0.2 px, up to 1.49 at 0.15.)
+EDGE_PX = 0.15
 
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
@@ -165,6 +167,32 @@ def _moments_at(table: Tensor, bias: float) -> tuple[Tensor, Tensor, Tensor]:
     return area, torch.stack((cu, cv), -1), cov
 
 
+def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarray, crop: int,
+                     sigma: float) -> dict:
+    """The residual channels of the soft render at known poses against masks: the renderer's own error.
+
+    Args:
+        shape: the object; camera: intrinsics.
+        rot: (T, 3, 3) and trans: (T, 3) the poses (mesh to camera), metres.
+        masks: (T, H, W) bool masks of those poses (each non-empty).
+        crop, sigma: the render crop (pixels) and edge width (crop pixels), as :class:`VideoProblem`'s.
+
+    Returns:
+        channel name -> (T,) observed minus rendered (:func:`torchfit.residuals.channel_values`),
+        and ``"stride"`` -> (T,) the crop windows' image pixels per crop pixel.
+    """
+    rot, trans = rot.double(), trans.double()
+    mesh = RenderMesh.from_shape(shape, torch.float64, rot.device)
+    boxes = torch.as_tensor(_boxes(masks), dtype=torch.float64, device=rot.device)
+    windows = crop_windows(boxes, (crop, crop), margin=0.3)
+    with torch.no_grad():
+        cover = render_silhouettes(mesh, camera, rot[None], trans[None], windows[None], size=(crop, crop),
+                                   sigma=sigma)[0]
+        observed = mask_moments(torch.as_tensor(masks, dtype=torch.float64, device=rot.device))
+        channels = channel_values(observed, _moments(cover, windows))
+    return {k: v.cpu().numpy() for k, v in channels.items()} | {"stride": windows[:, 2].cpu().numpy()}
+
+
 @dataclass
 class _Model:
     """A fitted model: the candidate (B = 1), its effects' parameter values and the segmentation
@@ -184,13 +212,19 @@ class VideoProblem:
         holdout: fraction of the used frames (the last ones) held out.
         search: settings of the baseline search from no guess.
         crop, sigma: render crop (pixels) and edge width (crop pixels) of refits and residuals.
+            Finer than the search's (64, 0.5): a sigmoid edge of width ``sigma * stride`` image
+            pixels overshoots at every convex corner (the max-of-lines distance), so the soft
+            silhouette is larger than the polygon by ~(sigma * stride)^2 per corner. At (64, 0.5)
+            this biased the true poses' scale channel by -0.24 % (cylinder) to -1.1 % (T-handle),
+            and a clock factor of 0.993 soaked it up; at (96, 0.25) the bias is -0.02 % and
+            -0.14 % (experiments/discover/render_bias.py).
         iterations: Levenberg-Marquardt iterations of each refit.
         edge_px: systematic edge accuracy of the segmentation (see :mod:`torchfit.residuals`).
         progress: one-line status messages.
     """
 
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
-                 search: SearchSettings = SearchSettings(), crop: int = 64, sigma: float = 0.5,
+                 search: SearchSettings = SearchSettings(), crop: int = 96, sigma: float = 0.25,
                  iterations: int = 15, edge_px: float = EDGE_PX, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
