@@ -4,8 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.camera import (Camera, gravity_direction, project, rectifying_homography,
-                             rectifying_rotation, tilt_roll_from_direction)
+from torchfit.camera import (
+    Camera,
+    gravity_direction,
+    project,
+    rectifying_homography,
+    rectifying_rotation,
+    tilt_roll_from_direction,
+)
 
 CAM = Camera(500.0, 480.0, 319.5, 239.5, 640, 480)
 

@@ -112,3 +112,21 @@ def test_an_effect_fitted_outside_its_physics_is_not_named():
     selection = select_effects(Disguise(), SelectionSettings())
     assert selection.verdict == []
     assert selection.steps[0].scores["linear_drag"]["unphysical"]
+
+
+def test_a_prediction_at_the_noise_level_is_not_vetoed_by_held_out_frames():
+    class AtNoise:  # a much better fit whose held-out error grows 10 %, from 1.06 to 1.17 noise floors
+        noise_var = 1.0
+        candidates = ("time_scale",)
+
+        def fit(self, effects, warm):
+            from torchfit.discover import ModelFit
+            rss, held = (300.0, 1.06) if not effects else (120.0, 1.17)
+            params = {"time_scale": {"time_scale": {"value": 0.97, "std": 0.002, "unit": "1"}}} if effects else {}
+            return ModelFit(tuple(effects), rss, 226, 15 + len(effects), params, (rss / 226) ** 0.5, held)
+
+    relative_only = select_effects(AtNoise(), SelectionSettings(min_heldout_gain=-0.05))
+    within_noise = select_effects(AtNoise(), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5))
+    strict_noise = select_effects(AtNoise(), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.1))
+    assert relative_only.verdict == [] and strict_noise.verdict == []
+    assert within_noise.verdict == ["time_scale"]

@@ -186,3 +186,25 @@ def test_refit_render_has_no_size_bias_at_the_true_poses(name, limit):
     coarse = render_residuals(rec.shape, rec.camera, rot, trans, masks, 64, 0.5)
     assert abs(fine["scale"].mean()) < limit
     assert abs(coarse["scale"].mean()) > 2 * limit  # the check can fail: the coarse render does
+
+
+def test_whitening_makes_frame_correlated_noise_independent_across_gaps():
+    from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
+
+    rho, sigma, n = FRAME_CORRELATION, 2.0, 30000
+    rng = np.random.default_rng(5)
+    x = np.empty(n)
+    x[0] = rng.normal()
+    for k in range(1, n):
+        x[k] = rho * x[k - 1] + np.sqrt(1 - rho**2) * rng.normal()
+    mask = rng.random(n) > 0.2  # frames left out (outliers, held out): gaps of 1-4 frames
+    video = VideoProblem.__new__(VideoProblem)
+    video.noise = {"scale": sigma}
+    white = video._whitened(torch.as_tensor(sigma * x[mask])[None], mask, "scale")[0].numpy()
+    assert abs(white.var() - 1.0) < 0.03
+    assert abs(np.corrcoef(white[1:], white[:-1])[0, 1]) < 0.03
+    # a constant offset of one noise floor over 40 frames counts as (1 - rho) / (1 + rho) of 40
+    # independent observations (plus the first frame's whole)
+    trend = video._whitened(torch.full((1, 40), sigma, dtype=torch.float64), np.ones(40, bool), "scale")
+    expected = 1 + 39 * (1 - rho) / (1 + rho)
+    assert abs(float(trend.square().sum()) - expected) < 1e-9

@@ -68,7 +68,10 @@ class SelectionSettings:
 
     Attributes:
         min_delta_bic: a candidate must lower the BIC by more than this (10 = "very strong").
-        min_heldout_gain: ...and improve the held-out RMS by at least this fraction.
+        min_heldout_gain: ...and improve the held-out RMS by at least this fraction,
+        heldout_noise: ...or, when set, predict the held-out data within this RMS (in the units of
+            ``ModelFit.heldout_rms``; on video, noise floors): a prediction at the noise level
+            cannot be shown worse by held-out data, so the relative rule does not veto it.
         lookalike_margin: a passing candidate whose ΔBIC is within this of the winner's is a
             look-alike: both are reported as indistinguishable and none is added.
         max_effects: most effects added.
@@ -77,6 +80,7 @@ class SelectionSettings:
 
     min_delta_bic: float = 10.0
     min_heldout_gain: float = 0.02
+    heldout_noise: float | None = None
     lookalike_margin: float = 10.0
     max_effects: int = 4
     holdout: float = 0.25
@@ -228,8 +232,9 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
                 "heldout_gain": gain, "params": fit.params,
                 "unphysical": outside,
-                "passes": bool(bic_base - bic > settings.min_delta_bic and gain >= settings.min_heldout_gain
-                               and not outside),
+                "passes": bool(bic_base - bic > settings.min_delta_bic and not outside
+                               and (gain >= settings.min_heldout_gain
+                                    or (settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise))),
             }
             say(f"  + {name}: ΔBIC {bic_base - bic:.1f}, held-out {base.heldout_rms:.4g} -> {fit.heldout_rms:.4g}")
         steps.append(step)

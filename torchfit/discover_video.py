@@ -77,18 +77,26 @@ DEFAULT_CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", 
 # Segmentation edge accuracy (pixels) in the noise floor: calibrated on the shipped recordings,
 # which hide nothing (experiments/discover/calibrate_noise.py, the rule: the grid value that brings
 # the largest chi-squared per observation of a baseline to about 1). With the refits' render at
-# crop 96, sigma 0.25: 0.36-1.02 at 0.15 px, 0.22-0.67 at 0.2 px, 0.61-1.67 at 0.1 px. (At crop 64,
-# sigma 0.5 the renderer's own corner bias was in the residuals: 0.43-0.92 at 0.2 px, up to 1.49 at 0.15.)
-EDGE_PX = 0.15
+# crop 96, sigma 0.25 and the residuals whitened for FRAME_CORRELATION: 0.45-1.07 at 0.1 px,
+# 0.29-0.75 at 0.15 px. (At crop 64, sigma 0.5, not whitened, it was 0.2 px: the renderer's own
+# corner bias was in the residuals.)
+EDGE_PX = 0.1
+
+# Lag-one correlation of the segmentation error from frame to frame (AR(1) noise in every channel):
+# measured on the shipped recordings, which hide nothing, as segmented minus true masks
+# (experiments/discover/calibrate_noise.py: 0.38 on average over the five channels and four
+# recordings, lag two 0.16 where AR(1) predicts 0.14). The criterion whitens the residuals with it.
+FRAME_CORRELATION = 0.4
 
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
 
-# Selection on video: the held-out error may not grow by more than 5 % (it need not shrink). A
+# Selection on video: the held-out error may not grow by more than 5 % (it need not shrink), unless
+# it stays within 1.5 noise floors (RMS): at the noise level the relative rule compares noise with noise. A
 # frame-rate error and a depth moved with the outline (the edge bias) predict the same centroids, so
 # held-out frames cannot tell them apart; only the silhouette's size does, which the BIC weighs
 # against the edge bias's prior. Held-out frames still veto an effect that predicts worse.
-VIDEO_SELECTION = SelectionSettings(min_heldout_gain=-0.05)
+VIDEO_SELECTION = SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5)
 
 # Typical size of each effect parameter (its unit): the optimiser's and the Jacobian's step unit.
 EFFECT_SCALES = {"drag_coefficient": 0.3, "damping": 0.01, "lift_coefficient": 0.3, "spin_damping": 1e-4,
@@ -285,15 +293,32 @@ class VideoProblem:
         """(N, C) residuals of the frames in ``mask`` divided by the noise floors."""
         return np.stack([channels[c][mask] / self.noise[c] for c in CHANNELS], -1)
 
+    def _whitened(self, values: Tensor, mask: np.ndarray, channel: str) -> Tensor:
+        """(B, N) residuals of the N frames in ``mask`` in units of independent noise.
+
+        The noise is AR(1) from frame to frame (lag-one correlation ``FRAME_CORRELATION``, noise
+        floor ``self.noise[channel]``), so ``w_0 = r_0 / s`` and ``w_k = (r_k - a r_(k-1)) / (s
+        sqrt(1 - a^2))`` with ``a = rho^gap`` for frames ``gap`` apart (exact for gaps): the sum
+        of squares is the residual's chi-squared under that noise. A smooth trend counts as
+        fewer independent observations than the frames it spans.
+        """
+        frames = torch.as_tensor(np.flatnonzero(mask), dtype=values.dtype, device=values.device)
+        scaled = values / self.noise[channel]
+        if FRAME_CORRELATION == 0 or len(frames) < 2:
+            return scaled
+        a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
+        return torch.cat((scaled[:, :1], (scaled[:, 1:] - a * scaled[:, :-1]) / torch.sqrt(1 - a * a)), -1)
+
     # -- Levenberg-Marquardt on the normalised channels ----------------------------------------
 
     def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: float, mask: Tensor) -> Tensor:
-        """(B, N + 1) normalised residuals of the frames in ``mask`` (channel-major), then the
-        edge bias's prior term ``edge / EDGE_PRIOR_PX``."""
+        """(B, N + 1) whitened residuals of the frames in ``mask`` (channel-major, see
+        :meth:`_whitened`), then the edge bias's prior term ``edge / EDGE_PRIOR_PX``."""
         channels = self._channels(cands, effects, edge)
         prior = torch.full((len(cands), 1), edge / EDGE_PRIOR_PX, dtype=channels[CHANNELS[0]].dtype,
                            device=mask.device)
-        return torch.cat([channels[c][:, mask] / self.noise[c] for c in CHANNELS] + [prior], -1)
+        frames = mask.cpu().numpy()
+        return torch.cat([self._whitened(channels[c][:, mask], frames, c) for c in CHANNELS] + [prior], -1)
 
     def _build(self, model: _Model, state: Tensor, extra: Tensor) -> tuple[Candidates, list[Effect], float]:
         """Candidates (B = len(state)), effects and edge bias at ``model`` moved by scaled steps.
@@ -412,7 +437,8 @@ class VideoProblem:
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, float], held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
-        everything = self._normalised(channels, used)
+        everything = torch.cat([self._whitened(torch.as_tensor(channels[c][used])[None], used, c)[0]
+                                for c in CHANNELS]).numpy()
         held_channels = self.residuals(held_model)
         held = self._normalised(held_channels, self.held)
         n_free = 14 + self._extra_count(model)
@@ -492,7 +518,7 @@ class VideoProblem:
             self.train = self.train & ~outliers
             self.held = self.held & ~outliers
             used = used & ~outliers
-        self.noise = {name: float(np.hypot(noise_floor(channels[name][used]), self.systematic[name]))
+        self.noise = {name: float(np.hypot(noise_floor(channels[name][used], FRAME_CORRELATION), self.systematic[name]))
                       for name in CHANNELS}
 
 

@@ -135,17 +135,19 @@ def systematic_floor(observed: np.ndarray, used: np.ndarray, edge_px: float = 0.
             "orientation": edge_px * ratio / 2}
 
 
-def noise_floor(values: np.ndarray) -> float:
+def noise_floor(values: np.ndarray, rho: float = 0.0) -> float:
     """Robust standard deviation of the frame-to-frame jitter (a smooth trend does not count).
 
     Second differences of white noise of variance s^2 have variance 6 s^2, and remove a trend
     up to linear exactly and a quadratic one to a constant; the median absolute deviation makes
-    the floor robust to a few bad frames.
+    the floor robust to a few bad frames. With ``rho`` the noise is taken as correlated from one
+    frame to the next (AR(1), lag-one correlation ``rho``): its second differences then have
+    variance (6 - 8 rho + 2 rho^2) s^2, and the floor is s.
     """
     if len(values) < 5:
         return float("nan")
     second = np.diff(values, 2)
-    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0))
+    return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0 - 8.0 * rho + 2.0 * rho**2))
 
 
 def _trend(times: np.ndarray, values: np.ndarray, sigma: float) -> dict:

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 
 from torchfit.camera import Camera
-from torchfit.effects import EFFECTS
 from torchfit.discover_video import DEFAULT_CANDIDATES, VIDEO_SELECTION, discover_video
+from torchfit.effects import EFFECTS
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
 from torchfit.video import load_observation

@@ -44,11 +44,11 @@ def make_specs(n: int, seed: int):
 
 def true_iou(result: dict, folder: Path) -> float:
     import cv2  # noqa: F401 - imported for its side effects on some builds
+    import torch
 
     from torchfit.camera import Camera
     from torchfit.render import RenderMesh, full_window, render_silhouettes
     from torchfit.shape import load_shape
-    import torch
 
     camera = Camera.from_file(folder / "camera.json")
     shape = load_shape(folder / "mesh.obj", density=600.0)
