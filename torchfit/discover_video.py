@@ -309,6 +309,11 @@ class VideoProblem:
         a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
         return torch.cat((scaled[:, :1], (scaled[:, 1:] - a * scaled[:, :-1]) / torch.sqrt(1 - a * a)), -1)
 
+    def whitened_channels(self, channels: dict, mask: np.ndarray) -> dict:
+        """Channel name -> (N,) whitened residuals of the frames in ``mask``, from (T,) channels
+        (:meth:`residuals`); their squares sum to the chi-squared of the criterion."""
+        return {c: self._whitened(torch.as_tensor(channels[c][mask])[None], mask, c)[0].numpy() for c in CHANNELS}
+
     # -- Levenberg-Marquardt on the normalised channels ----------------------------------------
 
     def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: float, mask: Tensor) -> Tensor:
@@ -437,8 +442,7 @@ class VideoProblem:
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, float], held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
-        everything = torch.cat([self._whitened(torch.as_tensor(channels[c][used])[None], used, c)[0]
-                                for c in CHANNELS]).numpy()
+        everything = np.concatenate(list(self.whitened_channels(channels, used).values()))
         held_channels = self.residuals(held_model)
         held = self._normalised(held_channels, self.held)
         n_free = 14 + self._extra_count(model)

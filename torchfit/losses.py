@@ -78,11 +78,7 @@ def silhouette_loss(coverage: Tensor, target: Tensor, weights: Tensor, centroid_
 def coverage_residuals(coverage: Tensor, target: Tensor, weights: Tensor, centroid_weight: float = 1.0) -> Tensor:
     """The terms of :func:`silhouette_loss` as residuals: their squared sum is the loss.
 
-    Args:
-        coverage: (B, T, h, w) rendered coverage.
-        target: (T, h, w) observed coverage on the same grids.
-        weights: (T,) frame weights (0 for frames left out).
-        centroid_weight: weight of the centroid term.
+    Args: as :func:`silhouette_loss` (``coverage`` (B, T, h, w), ``target`` (T, h, w), ``weights`` (T,)).
 
     Returns:
         (B, T, h w + 2): per frame the coverage differences scaled by ``sqrt(w_t / (h w Σw))``,

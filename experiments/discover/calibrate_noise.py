@@ -36,10 +36,8 @@ EDGES = (0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
 OUT = Path(__file__).resolve().parent / "results" / "noise_calibration.json"
 
 
-def correlation(name: str, lags=(1, 2)) -> dict:
+def correlation(rec, observation, lags=(1, 2)) -> dict:
     """Per channel, the autocorrelation of segmented minus true masks' channels at ``lags`` frames."""
-    rec = load_recording(name)
-    observation = load_observation(str(rec.folder / "video.mp4"), camera=rec.camera)
     true = np.load(rec.folder / "masks.npz")["masks"].astype(bool)
     channels = channel_values(mask_moments(torch.as_tensor(observation.masks, dtype=torch.float64)),
                               mask_moments(torch.as_tensor(true, dtype=torch.float64)))
@@ -66,10 +64,9 @@ def calibrate(name: str) -> dict:
     for edge in EDGES:
         system = systematic_floor(masks, used, edge)
         video.noise = {c: float(np.hypot(jitter[c], system[c])) for c in CHANNELS}
-        chi2 = {c: float(np.nanmean(video._whitened(torch.as_tensor(channels[c][used])[None], used, c).numpy() ** 2))
-                for c in CHANNELS}
+        chi2 = {c: float(np.nanmean(v**2)) for c, v in video.whitened_channels(channels, used).items()}
         rows[str(edge)] = {"chi2_per_obs": float(np.mean(list(chi2.values()))), "per_channel": chi2}
-    return {"jitter": jitter, "rows": rows, "autocorrelation_lag1_lag2": correlation(name)}
+    return {"jitter": jitter, "rows": rows, "autocorrelation_lag1_lag2": correlation(rec, observation)}
 
 
 if __name__ == "__main__":
