@@ -3,15 +3,20 @@
     MUJOCO_GL=osmesa python experiments/discover/make_concealed.py   # once (~8 min), git-ignored
     python experiments/discover/concealed.py [names...]              # ~2-6 min per recording
     python experiments/discover/concealed.py --table                 # the table from the outputs
+    python experiments/discover/concealed.py --true-masks [names...] # MuJoCo's true masks instead
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
 experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
 table (verdict against truth, held-out error before and after, fitted coefficients against the
-engine's) is printed and written to results/concealed/table.md and summary.json.
+engine's) is printed and written to results/concealed/table.md and summary.json. With
+``--true-masks`` discover sees the engine's exact masks instead of the video's segmentation
+(results/concealed_true_masks/): what the physics, the noise model and the criterion do when
+the segmentation makes no error.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -25,7 +30,7 @@ from torchfit.discover_video import DEFAULT_CANDIDATES, VIDEO_SELECTION, discove
 from torchfit.effects import EFFECTS
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
-from torchfit.video import load_observation
+from torchfit.video import _boxes, load_observation
 
 HERE = Path(__file__).resolve().parent
 RECORDINGS = HERE / "recordings"
@@ -33,11 +38,14 @@ OUT = HERE / "results" / "concealed"
 CANDIDATES = DEFAULT_CANDIDATES  # inertia left out: see the README
 
 
-def run_one(folder: Path, out: Path) -> dict:
+def run_one(folder: Path, out: Path, true_masks: bool = False) -> dict:
     truth = json.loads((folder / "truth.json").read_text())
     shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
     camera = Camera.from_file(folder / "camera.json")
     observation = load_observation(str(folder / "video.mp4"), camera=camera)
+    if true_masks:
+        masks = np.load(folder / "masks.npz")["masks"].astype(bool)
+        observation = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
     problem, span = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32,
                                   device=torch.device("cpu"))
     return discover_video(problem, observation, span, candidates=CANDIDATES, settings=VIDEO_SELECTION,
@@ -105,37 +113,38 @@ def _fmt(value) -> str:
     return f"{value:.3g}"
 
 
-def rebuild() -> None:
+def rebuild(out: Path = OUT) -> None:
     """The table again from the discover.json files already written (no fitting)."""
-    rows = [row(f.parent.name, json.loads(f.read_text())) for f in sorted(OUT.glob("*/discover.json"))]
-    (OUT / "summary.json").write_text(json.dumps(rows, indent=1))
-    (OUT / "table.md").write_text(table(rows) + "\n")
+    rows = [row(f.parent.name, json.loads(f.read_text())) for f in sorted(out.glob("*/discover.json"))]
+    (out / "summary.json").write_text(json.dumps(rows, indent=1))
+    (out / "table.md").write_text(table(rows) + "\n")
     print(table(rows))
 
 
-def main(names: list[str]) -> None:
+def main(names: list[str], true_masks: bool = False) -> None:
+    out = OUT.with_name("concealed_true_masks") if true_masks else OUT
     if names == ["--table"]:
-        return rebuild()
+        return rebuild(out)
     if not RECORDINGS.exists():
         sys.exit(f"no recordings in {RECORDINGS}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py")
     folders = [RECORDINGS / n for n in names] if names else sorted(p for p in RECORDINGS.iterdir() if p.is_dir())
-    summary_file = OUT / "summary.json"
+    summary_file = out / "summary.json"
     rows = {}
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, OUT / folder.name)
+        content = run_one(folder, out / folder.name, true_masks)
         # other runs may have written meanwhile: merge
         rows = {r["recording"]: r for r in json.loads(summary_file.read_text())} if summary_file.exists() else {}
         rows[folder.name] = row(folder.name, content)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
-        OUT.mkdir(parents=True, exist_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
         ordered = [rows[k] for k in sorted(rows)]
         summary_file.write_text(json.dumps(ordered, indent=1))
-        (OUT / "table.md").write_text(table(ordered) + "\n")
+        (out / "table.md").write_text(table(ordered) + "\n")
     print(table([rows[k] for k in sorted(rows)]))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main([a for a in sys.argv[1:] if a != "--true-masks"], "--true-masks" in sys.argv[1:])
