@@ -1,0 +1,84 @@
+"""Where the segmentation errs on a concealed recording, frame by frame, and whether it knows.
+
+    python experiments/discover/segmentation_error.py [names...]   # ~1 min per recording
+
+For each frame: the segmented mask against MuJoCo's true mask (centroid error in px, edge bias =
+area difference / true perimeter in px), and the median object-background contrast |F - B| (grey
+levels, from the segmentation's own local shading fit) along the true outline. Prints them and
+the correlation of |edge bias| with 1 / contrast: if low contrast explained the errors, a
+per-frame noise floor from the contrast would weigh the bad frames down. Writes
+results/segmentation_error.json. Recordings: experiments/discover/recordings (make_concealed.py).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import torchfit.video as video
+
+HERE = Path(__file__).resolve().parent
+
+
+def measure(folder: Path) -> dict:
+    contrasts = []  # (H, W) |F - B| of each segmented frame, in the order _segment visits them
+    original = video._local_shading_coverage
+
+    def recording(diff, background, albedo, coverage, shaded, weight, fallback, radius):
+        # the same local shading as the segmentation's, kept for the contrast F - B
+        a, w = np.clip(coverage, 0.0, 1.0), weight.astype(np.float32)
+        num, den = (w * a * shaded).astype(np.float32), (w * a * a).astype(np.float32)
+        near = [cv2.GaussianBlur(x, (0, 0), radius) for x in (num, den)]
+        wide = [cv2.GaussianBlur(x, (0, 0), 4.0 * radius) for x in (num, den)]
+        shading = np.where(near[1] > 0.02, near[0] / np.maximum(near[1], 1e-9), wide[0] / np.maximum(wide[1], 1e-9))
+        contrasts.append(np.linalg.norm(shading[..., None] * albedo - background, axis=-1))
+        return original(diff, background, albedo, coverage, shaded, weight, fallback, radius)
+
+    capture = cv2.VideoCapture(str(folder / "video.mp4"))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frames.append(frame)
+    video._local_shading_coverage = recording
+    try:
+        segmented = video._segment(np.stack(frames), video.SegmentationSettings())["masks"]
+    finally:
+        video._local_shading_coverage = original
+    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    if len(contrasts) != len(true):
+        raise RuntimeError(f"{folder.name}: {len(contrasts)} segmented frames, {len(true)} true masks")
+    kernel = np.ones((3, 3), np.uint8)
+    rows = []
+    for t in range(len(true)):
+        outline = true[t] & ~cv2.erode(true[t].astype(np.uint8), kernel).astype(bool)
+        ys, xs = np.nonzero(segmented[t])
+        yt, xt = np.nonzero(true[t])
+        rows.append({"frame": t, "dx": float(xs.mean() - xt.mean()), "dy": float(ys.mean() - yt.mean()),
+                     "edge_px": float((segmented[t].sum() - true[t].sum()) / outline.sum()),
+                     "contrast": float(np.median(contrasts[t][outline]))})
+    edge = np.abs([r["edge_px"] for r in rows])
+    inverse = 1.0 / np.array([r["contrast"] for r in rows])
+    return {"frames": rows, "corr_abs_edge_inverse_contrast": float(np.corrcoef(edge, inverse)[0, 1])}
+
+
+def main(names: list[str]) -> None:
+    out = HERE / "results" / "segmentation_error.json"
+    results = json.loads(out.read_text()) if out.exists() else {}
+    for name in names or ["drag_foam_ball", "magnus_tshape"]:
+        result = measure(HERE / "recordings" / name)
+        results[name] = result
+        rows = result["frames"]
+        print(f"== {name}: corr(|edge bias|, 1/contrast) = {result['corr_abs_edge_inverse_contrast']:.2f}")
+        for key in ("edge_px", "dx", "dy", "contrast"):
+            print(f"  {key:8s}", " ".join(f"{r[key]:.2f}" for r in rows))
+    out.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
