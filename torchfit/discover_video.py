@@ -103,6 +103,12 @@ EFFECT_SCALES = {"drag_coefficient": 0.3, "damping": 0.01, "lift_coefficient": 0
                  "wind_velocity": 0.5, "offset": 0.005, "moment_scale": 0.1, "time_scale": 0.01,
                  "k1": 0.05, "k2": 0.02}
 
+# Levenberg-Marquardt's damping floor, relative to the largest diagonal of J^T J. Measured on
+# drag_foam_ball's held-out fit (first 75 % of the frames, true masks): with Marquardt's scaling
+# alone (floor 1e-9) every step was refused and C_d stayed at 0 (cost 43.56 after 40 iterations);
+# a floor of 1e-4 stalled at C_d 0.03; 1e-3 reached C_d 0.44, cost 36.8.
+LM_FLOOR = 1e-3
+
 
 def _as_float64(problem: Problem) -> Problem:
     """The same problem with float64 tensors (mesh and body rebuilt from the shape)."""
@@ -127,11 +133,6 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 # Where the model is right the fitted bias matches the measured one to a few hundredths of a pixel;
 # a missing effect pulls it (a wrong clock: time_box -1.25 px), see experiments/discover/README.md.
 EDGE_SCALE = 0.2
-# Levenberg-Marquardt's damping floor, relative to the largest diagonal of J^T J. Measured on
-# drag_foam_ball's held-out fit (first 75 % of the frames, true masks): with Marquardt's scaling
-# alone (floor 1e-9) every step was refused and C_d stayed at 0 (cost 43.56 after 40 iterations);
-# a floor of 1e-4 stalled at C_d 0.03; 1e-3 reached C_d 0.44, cost 36.8.
-LM_FLOOR = 1e-3
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 

@@ -335,6 +335,30 @@ def _luma_chroma(bgr: np.ndarray, chroma_weight: float) -> np.ndarray:
     return np.stack([luma, chroma_weight * (bgr[..., 0] - luma), chroma_weight * (bgr[..., 2] - luma)], -1)
 
 
+def _local_contrast(background: np.ndarray, albedo: np.ndarray, coverage: np.ndarray, shaded: np.ndarray,
+                    weight: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The object-background colour difference ``F - B`` with the shading fitted locally.
+
+    Args: as :func:`_local_shading_coverage`.
+
+    Returns:
+        (H, W, 3) ``F - B`` in luma/chroma, and (H, W) bool where the shading has support.
+
+    The local shading minimises ``sum_k g(x - k) w_k (u_k - a_k s)^2``, so
+    ``s(x) = G*(w a u) / G*(w a^2)``: mixed pixels count in proportion to their coverage, and
+    the background (``a ~ 0``) not at all. Where the near neighbourhood has too little
+    support, a 4x wider one is used.
+    """
+    a = np.clip(coverage, 0.0, 1.0)
+    w = weight.astype(np.float32)
+    numerator, denominator = (w * a * shaded).astype(np.float32), (w * a * a).astype(np.float32)
+    near = [cv2.GaussianBlur(x, (0, 0), radius) for x in (numerator, denominator)]
+    wide = [cv2.GaussianBlur(x, (0, 0), 4.0 * radius) for x in (numerator, denominator)]
+    shading = np.where(near[1] > 0.02, near[0] / np.maximum(near[1], 1e-9),
+                       wide[0] / np.maximum(wide[1], 1e-9))
+    return shading[..., None] * albedo - background, wide[1] > 1e-3
+
+
 def _local_shading_coverage(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray,
                             coverage: np.ndarray, shaded: np.ndarray, weight: np.ndarray,
                             fallback: np.ndarray, radius: float) -> np.ndarray:
@@ -351,24 +375,13 @@ def _local_shading_coverage(diff: np.ndarray, background: np.ndarray, albedo: np
         radius: Gaussian sigma (pixels) of the neighbourhood.
 
     Returns:
-        (H, W) float32 coverage.
-
-    The local shading minimises ``sum_k g(x - k) w_k (u_k - a_k s)^2``, so
-    ``s(x) = G*(w a u) / G*(w a^2)``: mixed pixels count in proportion to their coverage, and
-    the background (``a ~ 0``) not at all. Where the near neighbourhood has too little
-    support, a 4x wider one is used.
+        (H, W) float32 coverage: the projection ``(I - B).(F - B) / |F - B|^2`` with ``F - B``
+        from :func:`_local_contrast`.
     """
-    a = np.clip(coverage, 0.0, 1.0)
-    w = weight.astype(np.float32)
-    numerator, denominator = (w * a * shaded).astype(np.float32), (w * a * a).astype(np.float32)
-    near = [cv2.GaussianBlur(x, (0, 0), radius) for x in (numerator, denominator)]
-    wide = [cv2.GaussianBlur(x, (0, 0), 4.0 * radius) for x in (numerator, denominator)]
-    shading = np.where(near[1] > 0.02, near[0] / np.maximum(near[1], 1e-9),
-                       wide[0] / np.maximum(wide[1], 1e-9))
-    contrast = shading[..., None] * albedo - background  # F - B, (H, W, 3)
+    contrast, support = _local_contrast(background, albedo, coverage, shaded, weight, radius)
     contrast2 = (contrast**2).sum(-1)
     projected = (diff * contrast).sum(-1) / np.maximum(contrast2, 1e-6)
-    supported = (wide[1] > 1e-3) & (contrast2 > 100.0)  # |F - B| > 10 grey levels
+    supported = support & (contrast2 > 100.0)  # |F - B| > 10 grey levels
     return np.where(supported, projected, fallback).astype(np.float32)
 
 

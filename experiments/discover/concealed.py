@@ -16,23 +16,20 @@ the segmentation makes no error.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
+from true_masks import load_problem
 
 from torchfit.camera import Camera
 from torchfit.discover_video import DEFAULT_CANDIDATES, VIDEO_SELECTION, discover_video
 from torchfit.effects import EFFECTS
-from torchfit.run import build_problem
 from torchfit.shape import load_shape
-from torchfit.video import _boxes, load_observation
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parent  # also holds true_masks.py (load_problem)
 RECORDINGS = HERE / "recordings"
 OUT = HERE / "results" / "concealed"
 CANDIDATES = DEFAULT_CANDIDATES  # inertia left out: see the README
@@ -42,12 +39,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False) -> dict:
     truth = json.loads((folder / "truth.json").read_text())
     shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
     camera = Camera.from_file(folder / "camera.json")
-    observation = load_observation(str(folder / "video.mp4"), camera=camera)
-    if true_masks:
-        masks = np.load(folder / "masks.npz")["masks"].astype(bool)
-        observation = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
-    problem, span = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32,
-                                  device=torch.device("cpu"))
+    observation, problem, span = load_problem(folder, shape, camera, true_masks)
     return discover_video(problem, observation, span, candidates=CANDIDATES, settings=VIDEO_SELECTION,
                           truth=truth, out_dir=out, overlay=False, progress=print)
 

@@ -29,25 +29,14 @@ def measure(folder: Path) -> dict:
     original = video._local_shading_coverage
 
     def recording(diff, background, albedo, coverage, shaded, weight, fallback, radius):
-        # the same local shading as the segmentation's, kept for the contrast F - B
-        a, w = np.clip(coverage, 0.0, 1.0), weight.astype(np.float32)
-        num, den = (w * a * shaded).astype(np.float32), (w * a * a).astype(np.float32)
-        near = [cv2.GaussianBlur(x, (0, 0), radius) for x in (num, den)]
-        wide = [cv2.GaussianBlur(x, (0, 0), 4.0 * radius) for x in (num, den)]
-        shading = np.where(near[1] > 0.02, near[0] / np.maximum(near[1], 1e-9), wide[0] / np.maximum(wide[1], 1e-9))
-        contrasts.append(np.linalg.norm(shading[..., None] * albedo - background, axis=-1))
+        contrast, _ = video._local_contrast(background, albedo, coverage, shaded, weight, radius)
+        contrasts.append(np.linalg.norm(contrast, axis=-1))
         return original(diff, background, albedo, coverage, shaded, weight, fallback, radius)
 
-    capture = cv2.VideoCapture(str(folder / "video.mp4"))
-    frames = []
-    while True:
-        ok, frame = capture.read()
-        if not ok:
-            break
-        frames.append(frame)
+    frames, _ = video._read_video(folder / "video.mp4", 0, None)
     video._local_shading_coverage = recording
     try:
-        segmented = video._segment(np.stack(frames), video.SegmentationSettings())["masks"]
+        segmented = video._segment(frames, video.SegmentationSettings())["masks"]
     finally:
         video._local_shading_coverage = original
     true = np.load(folder / "masks.npz")["masks"].astype(bool)

@@ -30,6 +30,17 @@ from torchfit.shape import load_shape
 from torchfit.video import _boxes, load_observation
 
 
+def load_problem(folder: Path, shape, camera: Camera, true_masks: bool):
+    """A recording's observation, fit problem (float32, CPU) and span: its video segmented as
+    discover does, or with the engine's true masks (``masks.npz``) in place of the segmentation."""
+    observation = load_observation(str(folder / "video.mp4"), camera=camera)
+    if true_masks:
+        masks = np.load(folder / "masks.npz")["masks"].astype(bool)
+        observation = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
+    problem, span = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32, device=torch.device("cpu"))
+    return observation, problem, span
+
+
 def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -> None:
     if "/" in target:
         folder = Path(target)
@@ -39,11 +50,7 @@ def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -
     else:
         rec = load_recording(target)
         folder, shape, camera = rec.folder, rec.shape, rec.camera
-    observation = load_observation(str(folder / "video.mp4"), camera=camera)
-    if not segmented:
-        masks = np.load(folder / "masks.npz")["masks"].astype(bool)
-        observation = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
-    problem, _ = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32, device=torch.device("cpu"))
+    _, problem, _ = load_problem(folder, shape, camera, true_masks=not segmented)
     video = VideoProblem(problem, candidates=effects, progress=print, **render)
     base = video.fit((), None)
     print(f"masks: {'segmented' if segmented else 'true'}; baseline edge bias {base.payload['edge_px']['value']:+.3f} px, "
