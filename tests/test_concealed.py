@@ -118,6 +118,25 @@ def test_every_effect_has_two_recordings_and_four_controls(mods):
     assert sum(n.startswith("magnus") for n in names) >= 2
 
 
+def test_light_drag_recordings_are_the_heavy_throws_with_a_quarter_of_the_mass(mods):
+    """drag_light_* are specified from drag_ball's / drag_box's detection limit: same throw and
+    drag, 1/4 of the mass (so 4x the drag's deceleration)."""
+    _, mc = mods
+    specs = {s.name: s for s, _ in mc.concealed_specs()}
+    for heavy in ("drag_ball", "drag_box"):
+        light = specs[heavy.replace("drag_", "drag_light_")]
+        assert light.replace(density=specs[heavy].density, name=heavy) == specs[heavy]
+        assert light.density == pytest.approx(specs[heavy].density / 4, rel=0.01)
+
+
+def test_summary_merge_keeps_rows_not_remade(mods):
+    _, mc = mods
+    kept = [{"name": "control_ball", "v": 1}, {"name": "drag_ball", "v": 1}]
+    merged = mc.merge_summary(kept, [{"name": "drag_ball", "v": 2}, {"name": "drag_light_ball", "v": 2}])
+    assert merged == [{"name": "drag_ball", "v": 2}, {"name": "drag_light_ball", "v": 2},
+                      {"name": "control_ball", "v": 1}]
+
+
 SMALL = {"width": 320, "height": 240, "n_frames": 20}
 
 

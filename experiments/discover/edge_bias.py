@@ -17,13 +17,18 @@ ROOT = Path(__file__).resolve().parents[2]
 FOLDERS = [ROOT / "torchfit" / "recordings", ROOT / "experiments" / "discover" / "recordings"]
 
 
+def outline(masks: np.ndarray) -> np.ndarray:
+    """(T, H, W) bool: the pixels of (T, H, W) bool masks with a 4-neighbour outside the mask."""
+    inner = masks.copy()
+    inner[:, 1:-1, 1:-1] &= masks[:, :-2, 1:-1] & masks[:, 2:, 1:-1] & masks[:, 1:-1, :-2] & masks[:, 1:-1, 2:]
+    return masks & ~inner
+
+
 def edge_bias(folder: Path) -> float:
     observation = load_observation(folder / "video.mp4", camera=folder / "camera.json")
     with np.load(folder / "masks.npz") as data:
         truth = data["masks"].astype(bool)
-    inner = truth.copy()
-    inner[:, 1:-1, 1:-1] &= truth[:, :-2, 1:-1] & truth[:, 2:, 1:-1] & truth[:, 1:-1, :-2] & truth[:, 1:-1, 2:]
-    perimeter = (truth & ~inner).sum((1, 2))
+    perimeter = outline(truth).sum((1, 2))
     bias = (observation.masks.sum((1, 2)) - truth.sum((1, 2))) / np.maximum(perimeter, 1)
     return float(bias[observation.used].mean())
 

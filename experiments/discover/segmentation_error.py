@@ -16,8 +16,8 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
+from edge_bias import outline
 
 import torchfit.video as video
 
@@ -42,15 +42,15 @@ def measure(folder: Path) -> dict:
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
     if len(contrasts) != len(true):
         raise RuntimeError(f"{folder.name}: {len(contrasts)} segmented frames, {len(true)} true masks")
-    kernel = np.ones((3, 3), np.uint8)
+    outlines = outline(true)
     rows = []
     for t in range(len(true)):
-        outline = true[t] & ~cv2.erode(true[t].astype(np.uint8), kernel).astype(bool)
+        edge = outlines[t]
         ys, xs = np.nonzero(segmented[t])
         yt, xt = np.nonzero(true[t])
         rows.append({"frame": t, "dx": float(xs.mean() - xt.mean()), "dy": float(ys.mean() - yt.mean()),
-                     "edge_px": float((segmented[t].sum() - true[t].sum()) / outline.sum()),
-                     "contrast": float(np.median(contrasts[t][outline]))})
+                     "edge_px": float((segmented[t].sum() - true[t].sum()) / edge.sum()),
+                     "contrast": float(np.median(contrasts[t][edge]))})
     edge = np.abs([r["edge_px"] for r in rows])
     inverse = 1.0 / np.array([r["contrast"] for r in rows])
     return {"frames": rows, "corr_abs_edge_inverse_contrast": float(np.corrcoef(edge, inverse)[0, 1])}
