@@ -109,6 +109,12 @@ EFFECT_SCALES = {"drag_coefficient": 0.3, "damping": 0.01, "lift_coefficient": 0
 # a floor of 1e-4 stalled at C_d 0.03; 1e-3 reached C_d 0.44, cost 36.8.
 LM_FLOOR = 1e-3
 
+# An added effect's parameters start at their null values and at one scale unit either side of
+# them, one component at a time; each start gets this many LM iterations and the lowest cost goes
+# on. From the null alone, drag_light_ball's drag fit (segmented video) crawled to C_d 0.008, cost
+# 379.7, in 15 iterations; from C_d 0.3 it reached 0.42, cost 352.6 (measured, floor 1e-3).
+SCREEN_ITERATIONS = 4
+
 
 def _as_float64(problem: Problem) -> Problem:
     """The same problem with float64 tensors (mesh and body rebuilt from the shape)."""
@@ -466,6 +472,32 @@ class VideoProblem:
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))})
 
+    def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
+        """The start for a refit that adds the effects ``new`` to ``model``.
+
+        Starts: ``model`` (the new effects at null) and, for each parameter component of ``new``,
+        the same moved one ``EFFECT_SCALES`` unit either side. Each runs ``SCREEN_ITERATIONS`` LM
+        iterations on the frames in ``mask``; returns the start with the lowest cost and where
+        its screening ended."""
+        starts = [model]
+        for name in new:
+            for pname, value in model.values[name].items():
+                value = torch.as_tensor(value, dtype=torch.float64)
+                for index in range(value.numel()):
+                    for sign in (1.0, -1.0):
+                        moved = value.clone().reshape(-1)
+                        moved[index] += sign * EFFECT_SCALES.get(pname, 0.1)
+                        values = {n: dict(p) for n, p in model.values.items()}
+                        values[name][pname] = moved.view_as(value)
+                        starts.append(_Model(model.cands, values, model.edge))
+        best = None
+        for start in starts:
+            screened, resid, _ = self._lm(start, mask, SCREEN_ITERATIONS)
+            cost = float(torch.nan_to_num(resid, nan=1e3).square().sum())
+            if best is None or cost < best[0]:
+                best = (cost, start, screened)
+        return best[1], best[2]
+
     @staticmethod
     def _extend(start: _Model, effects: tuple[str, ...]) -> _Model:
         """``start`` with ``effects`` (those it lacks at their null values)."""
@@ -489,9 +521,12 @@ class VideoProblem:
             model, resid, jac = self._lm(start, everything, self.iterations)
             held_model, _, _ = self._lm(model, self.train, self.iterations)
         else:
-            model, resid, jac = self._lm(self._extend(warm.payload["model"], effects), everything, self.iterations)
-            held_model, _, _ = self._lm(self._extend(warm.payload["held_model"], effects), self.train,
-                                        self.iterations)
+            new = tuple(name for name in effects if name not in warm.payload["model"].values)
+            start, screened = self._screen(self._extend(warm.payload["model"], effects), new, everything)
+            model, resid, jac = self._lm(screened, everything, self.iterations)
+            held_start = self._extend(warm.payload["held_model"], effects)
+            held_start.values.update({name: start.values[name] for name in new})
+            held_model, _, _ = self._lm(held_start, self.train, self.iterations)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model)
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
