@@ -382,6 +382,11 @@ class VideoProblem:
         jac = torch.cat(columns).T.double()
         return base.double(), jac
 
+    @staticmethod
+    def _cost(resid: Tensor) -> float:
+        """Sum of squares of (N,) residuals, a non-finite one counting 1e3 (a frame left the view)."""
+        return float(torch.nan_to_num(resid, nan=1e3).square().sum())
+
     def _lm(self, model: _Model, mask: np.ndarray, iterations: int) -> tuple[_Model, Tensor, Tensor]:
         """Levenberg-Marquardt from ``model`` on the frames in ``mask``; returns the model, the
         residual and the Jacobian at it."""
@@ -404,7 +409,7 @@ class VideoProblem:
                 with torch.no_grad():
                     cands, effects, edge = self._build(model, delta[:14][None], delta[14:])
                     trial = self._vector(cands, effects, edge, mask_t)[0].double()
-                trial_cost = float(torch.nan_to_num(trial, nan=1e3).square().sum())
+                trial_cost = self._cost(trial)
                 if trial_cost < cost:
                     model = _Model(cands.rebase(), {e.name: {k: v.detach().cpu().clone() for k, v in e.values().items()}
                                                     for e in effects}, edge)
@@ -493,7 +498,7 @@ class VideoProblem:
         best = None
         for start in starts:
             screened, resid, _ = self._lm(start, mask, SCREEN_ITERATIONS)
-            cost = float(torch.nan_to_num(resid, nan=1e3).square().sum())
+            cost = self._cost(resid)
             if best is None or cost < best[0]:
                 best = (cost, start, screened)
         return best[1], best[2]

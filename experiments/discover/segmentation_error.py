@@ -51,9 +51,9 @@ def measure(folder: Path) -> dict:
         rows.append({"frame": t, "dx": float(xs.mean() - xt.mean()), "dy": float(ys.mean() - yt.mean()),
                      "edge_px": float((segmented[t].sum() - true[t].sum()) / edge.sum()),
                      "contrast": float(np.median(contrasts[t][edge]))})
-    edge = np.abs([r["edge_px"] for r in rows])
+    error = np.abs([r["edge_px"] for r in rows])
     inverse = 1.0 / np.array([r["contrast"] for r in rows])
-    return {"frames": rows, "corr_abs_edge_inverse_contrast": float(np.corrcoef(edge, inverse)[0, 1])}
+    return {"frames": rows, "corr_abs_edge_inverse_contrast": float(np.corrcoef(error, inverse)[0, 1])}
 
 
 def main(names: list[str]) -> None:

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from torchfit.camera import Camera
+from torchfit.discover import _criterion
 from torchfit.discover_video import VideoProblem
 from torchfit.paper._recording import load_recording
 from torchfit.run import build_problem
@@ -57,7 +58,7 @@ def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -
           f"held-out centroid {base.payload['heldout_centroid_px']:.3f} px")
     for effect in effects:
         refit = video.fit((effect,), base)
-        delta_bic = base.rss - refit.rss - np.log(refit.n_obs) * (refit.n_free - base.n_free)
+        delta_bic = _criterion(base, video.noise_var)[1] - _criterion(refit, video.noise_var)[1]
         params = {p: f"{v['value']:.4g} ± {v['std']:.2g}" for p, v in refit.params[effect].items()}
         print(f"+ {effect}: {params}, edge {refit.payload['edge_px']['value']:+.3f} px, ΔBIC {delta_bic:.1f}, "
               f"held-out centroid {base.payload['heldout_centroid_px']:.3f} -> {refit.payload['heldout_centroid_px']:.3f} px")
