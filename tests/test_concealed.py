@@ -197,3 +197,30 @@ def test_shipped_recording_unchanged(mods, tmp_path):
     shipped = ROOT / "torchfit" / "recordings" / "tshape_small"
     for f in ("truth.json", "camera.json", "mesh.obj", "masks.npz"):
         assert (tmp_path / "tshape_small" / f).read_bytes() == (shipped / f).read_bytes(), f
+
+
+def _content(verdict: list[str], truth: dict) -> dict:
+    """A discover.json as concealed.py reads it (two models, round one's scores)."""
+    return {"verdict": verdict, "truth_effects": truth, "indistinguishable": [], "seconds": 1.0,
+            "iou_baseline": {"mean_fitted": 0.95, "mean_heldout": 0.94},
+            "effects": {"quadratic_drag": [{"delta_bic": 20.0, "detectable_above": {"drag_coefficient": 0.3}}],
+                        "time_scale": [{"delta_bic": 3.0, "detectable_above": {"time_scale": 0.01}}]},
+            "models": [{"heldout_centroid_px": 2.0, "params": {}},
+                       {"heldout_centroid_px": 1.0,
+                        "params": {"quadratic_drag": {"drag_coefficient": {"value": 0.5, "std": 0.1}}}}]}
+
+
+def test_concealed_verdict_is_right_only_when_exactly_the_hidden_effects_are_named():
+    """A spurious second name makes a verdict wrong, as a wrong first one does; controls must name nothing."""
+    sys.path.insert(0, str(CONCEALED.parent))  # concealed.py imports true_masks from its folder
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    drag = {"quadratic_drag": {"drag_coefficient": 0.5}}
+    exact = conc.row("drag_x", _content(["quadratic_drag"], drag))
+    extra = conc.row("drag_x", _content(["quadratic_drag", "com_offset"], drag))
+    wrong = conc.row("drag_x", _content(["time_scale"], drag))
+    quiet = conc.row("control_x", _content([], {}))
+    alarm = conc.row("control_x", _content(["time_scale"], {}))
+    assert [r["right"] for r in (exact, extra, wrong, quiet, alarm)] == [True, False, False, True, False]
+    assert exact["top_delta_bic"] == ["quadratic_drag", 20.0]
+    table = conc.table([exact, extra, wrong])
+    assert "| NO (also named com_offset) |" in table and table.count("| NO |") == 1
