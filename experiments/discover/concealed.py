@@ -105,8 +105,14 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {r['recording']} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{_right(r)} | {r['iou_baseline']['mean_fitted']:.3f} / "
                      f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "
-                     f"{r['heldout_px_after']:.2f} | {fitted} | {visible} | {r['top_delta_bic'][0]} {r['top_delta_bic'][1]:.1f} |")
+                     f"{r['heldout_px_after']:.2f} | {fitted} | {visible} | {_top(r)} |")
     return "\n".join(lines)
+
+
+def _top(r: dict) -> str:
+    """Round one's strongest candidate and its ΔBIC (blank for a summary row written before it was kept)."""
+    top = r.get("top_delta_bic")
+    return f"{top[0]} {top[1]:.1f}" if top else ""
 
 
 def _right(r: dict) -> str:
