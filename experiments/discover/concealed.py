@@ -105,14 +105,8 @@ def table(rows: list[dict]) -> str:
         lines.append(f"| {r['recording']} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{_right(r)} | {r['iou_baseline']['mean_fitted']:.3f} / "
                      f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "
-                     f"{r['heldout_px_after']:.2f} | {fitted} | {visible} | {_top(r)} |")
+                     f"{r['heldout_px_after']:.2f} | {fitted} | {visible} | {r['top_delta_bic'][0]} {r['top_delta_bic'][1]:.1f} |")
     return "\n".join(lines)
-
-
-def _top(r: dict) -> str:
-    """Round one's strongest candidate and its ΔBIC (blank for a summary row written before it was kept)."""
-    top = r.get("top_delta_bic")
-    return f"{top[0]} {top[1]:.1f}" if top else ""
 
 
 def _right(r: dict) -> str:
@@ -129,40 +123,33 @@ def _fmt(value) -> str:
     return f"{value:.3g}"
 
 
-def rebuild(out: Path = OUT) -> None:
-    """The table again from the discover.json files already written (no fitting)."""
+def rebuild(out: Path = OUT) -> str:
+    """summary.json and table.md from every discover.json under ``out`` (no fitting: rows of other
+    runs and earlier ones are read back the same way); returns the table."""
     rows = [row(f.parent.name, json.loads(f.read_text())) for f in sorted(out.glob("*/discover.json"))]
     (out / "summary.json").write_text(json.dumps(rows, indent=1))
     (out / "table.md").write_text(table(rows) + "\n")
-    print(table(rows))
+    return table(rows)
 
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False) -> None:
     out = OUT.with_name("shipped") if shipped else OUT.with_name("concealed_true_masks") if true_masks else OUT
     if names == ["--table"]:
-        return rebuild(out)
+        return print(rebuild(out))
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
     elif not RECORDINGS.exists():
         sys.exit(f"no recordings in {RECORDINGS}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py")
     else:
         folders = [RECORDINGS / n for n in names] if names else sorted(p for p in RECORDINGS.iterdir() if p.is_dir())
-    summary_file = out / "summary.json"
-    rows = {}
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks)
-        # other runs may have written meanwhile: merge
-        rows = {r["recording"]: r for r in json.loads(summary_file.read_text())} if summary_file.exists() else {}
-        rows[folder.name] = row(folder.name, content)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
-        out.mkdir(parents=True, exist_ok=True)
-        ordered = [rows[k] for k in sorted(rows)]
-        summary_file.write_text(json.dumps(ordered, indent=1))
-        (out / "table.md").write_text(table(ordered) + "\n")
-    print(table([rows[k] for k in sorted(rows)]))
+        summary = rebuild(out)  # after each recording, with what other runs have written meanwhile
+    print(summary)
 
 
 if __name__ == "__main__":

@@ -72,11 +72,13 @@ def measure(folder: Path) -> dict:
         average = torch.stack([render(sub_rotation[:, k], sub_position[:, k]) for k in range(subframes)]).mean(0)
         blurred = ((average - 0.5) / RAMP + 0.5).clamp(0.0, 1.0)
     used = observation.used
+    observed = {kind: mask_moments(torch.as_tensor(masks, dtype=torch.float64))
+                for kind, masks in (("true", true), ("seg", segmented))}
+    fitted = {"mid": _moments(mid, windows), "blur": _moments(blurred, windows)}
     out = {}
-    for label, masks, rendered in (("true-mid", true, mid), ("seg-mid", segmented, mid),
-                                   ("seg-blur", segmented, blurred), ("true-blur", true, blurred)):
-        observed = mask_moments(torch.as_tensor(masks, dtype=torch.float64))
-        channels = channel_values(observed, _moments(rendered, windows))
+    for label in ("true-mid", "seg-mid", "seg-blur", "true-blur"):
+        kind, render_kind = label.split("-")
+        channels = channel_values(observed[kind], fitted[render_kind])
         out[label] = {c: {"mean": float(channels[c][used].mean()), "rms": float(channels[c][used].pow(2).mean().sqrt())}
                       for c in CHANNELS}
     return out

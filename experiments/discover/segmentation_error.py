@@ -26,19 +26,19 @@ HERE = Path(__file__).resolve().parent
 
 def measure(folder: Path) -> dict:
     contrasts = []  # (H, W) |F - B| of each segmented frame, in the order _segment visits them
-    original = video._local_shading_coverage
+    original = video._local_contrast  # called once per frame by the local-shading coverage
 
-    def recording(diff, background, albedo, coverage, shaded, weight, fallback, radius):
-        contrast, _ = video._local_contrast(background, albedo, coverage, shaded, weight, radius)
+    def recording(*args):
+        contrast, support = original(*args)
         contrasts.append(np.linalg.norm(contrast, axis=-1))
-        return original(diff, background, albedo, coverage, shaded, weight, fallback, radius)
+        return contrast, support
 
     frames, _ = video._read_video(folder / "video.mp4", 0, None)
-    video._local_shading_coverage = recording
+    video._local_contrast = recording
     try:
         segmented = video._segment(frames, video.SegmentationSettings())["masks"]
     finally:
-        video._local_shading_coverage = original
+        video._local_contrast = original
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
     if len(contrasts) != len(true):
         raise RuntimeError(f"{folder.name}: {len(contrasts)} segmented frames, {len(true)} true masks")
