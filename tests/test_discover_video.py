@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from torchfit.camera import Camera
+from torchfit.discover_video import EDGE_PRIOR_PX
 from torchfit.dynamics import RigidBody, simulate
 from torchfit.effects import LensDistortion, make_effect
 from torchfit.render import RenderMesh, full_window, render_silhouettes
@@ -113,6 +114,12 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     assert tried["params"]["quadratic_drag"]["drag_coefficient"]["unit"] == "1"
     assert content["truth_effects"] == {}
     assert tried["detectable_above"]["drag_coefficient"] > 0
+    # the per-frame evidence: one chi-squared per criterion frame; with the edge bias's prior term
+    # (one observation that is no frame) it is the model's chi-squared
+    base = content["models"][0]
+    assert len(base["frame_chi2"]) == len(content["criterion_frames"]) == len(tried["unit_delta_chi2"]) > 8
+    prior = (base["edge_px"]["value"] / EDGE_PRIOR_PX) ** 2
+    assert sum(base["frame_chi2"]) + prior == pytest.approx(base["chi2_per_obs"] * base["n_obs"], rel=1e-9)
     edge = content["models"][0]["edge_px"]
     assert abs(edge["value"]) < 1.0 and edge["std"] > 0
     assert "edge bias" in (tmp_path / "report.txt").read_text()

@@ -105,6 +105,8 @@ class ModelFit:
         fit_rms: RMS residual on all data.
         heldout_rms: RMS prediction error on the held-out part after fitting the rest.
         payload: the problem's own (warm start, residuals).
+        parts: optional (U,) chi-squared per unit of the data (a video's frames, in order), the
+            part of ``rss / noise_var`` each unit contributes: where a candidate's evidence lies.
     """
 
     effects: tuple[str, ...]
@@ -115,6 +117,7 @@ class ModelFit:
     fit_rms: float
     heldout_rms: float
     payload: Any = None
+    parts: np.ndarray | None = None
 
 
 class SelectionProblem(Protocol):
@@ -232,6 +235,8 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
                 "heldout_gain": gain, "params": fit.params,
                 "unphysical": outside,
+                **({"unit_delta_chi2": (base.parts - fit.parts).tolist()}
+                   if base.parts is not None and fit.parts is not None else {}),
                 "passes": bool(bic_base - bic > settings.min_delta_bic and not outside
                                and (gain >= settings.min_heldout_gain
                                     or (settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise))),

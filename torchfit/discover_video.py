@@ -392,7 +392,7 @@ class VideoProblem:
         residual and the Jacobian at it."""
         mask_t = torch.as_tensor(mask, device=self.problem.masks.device) & self.problem.used
         resid, jac = self._jacobian(model, mask_t)
-        cost = float(torch.nan_to_num(resid).square().sum())
+        cost = self._cost(resid)
         damping = 1e-3
         for _ in range(iterations):
             good = torch.isfinite(resid)
@@ -460,7 +460,9 @@ class VideoProblem:
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, float], held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
-        everything = np.concatenate(list(self.whitened_channels(channels, used).values()))
+        whitened = self.whitened_channels(channels, used)
+        everything = np.concatenate(list(whitened.values()))
+        per_frame = np.nansum(np.stack(list(whitened.values())) ** 2, 0)  # (N,) chi-squared of each used frame
         held_channels = self.residuals(held_model)
         held = self._normalised(held_channels, self.held)
         n_free = 14 + self._extra_count(model)
@@ -475,7 +477,8 @@ class VideoProblem:
                                  "edge_px": {"value": model.edge, "std": std[1]},
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
-                                 "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))})
+                                 "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
+                        parts=per_frame)
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
@@ -672,9 +675,10 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
-                    "edge_px": f.payload["edge_px"],
+                    "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(video.held)],
+        "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
         "settings": asdict(settings),
         "candidates": list(video.candidates),
