@@ -130,3 +130,46 @@ def test_a_prediction_at_the_noise_level_is_not_vetoed_by_held_out_frames():
     strict_noise = select_effects(AtNoise(), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.1))
     assert relative_only.verdict == [] and strict_noise.verdict == []
     assert within_noise.verdict == ["time_scale"]
+
+
+def test_evidence_resting_on_one_stretch_of_frames_is_not_named():
+    """Two candidates lower chi-squared by the same 60 over 60 frames: one spread over the whole
+    flight, one from frames 40-49 alone (as a segmentation error over one patch of background
+    gives). With the evidence cut into three stretches only the spread one is named; without the
+    rule both pass and they are indistinguishable."""
+    import numpy as np
+
+    from torchfit.discover import ModelFit
+
+    frames = 60
+    base = np.full(frames, 2.0)
+    spread = base - 1.0
+    local = base.copy()
+    local[40:50] -= 6.0
+
+    class Stretches:
+        noise_var = 1.0
+        candidates = ("quadratic_drag", "time_scale")
+
+        def __init__(self, only):
+            self.candidates = only
+
+        def fit(self, effects, warm):
+            parts = {(): base, ("quadratic_drag",): spread, ("time_scale",): local}[tuple(effects)]
+            rss = float(parts.sum())
+            held = 1.0 if not effects else 0.5
+            return ModelFit(tuple(effects), rss, 5 * frames, 15 + len(effects), {}, (rss / 300) ** 0.5, held,
+                            parts=parts)
+
+    both = select_effects(Stretches(("quadratic_drag", "time_scale")), SelectionSettings(evidence_blocks=3, max_effects=1))
+    assert both.verdict == ["quadratic_drag"]
+    scores = both.steps[0].scores
+    assert scores["time_scale"]["delta_bic"] > 10 and not scores["time_scale"]["passes"]
+    assert scores["time_scale"]["weakest_block"] == [40, 59]
+    assert scores["time_scale"]["delta_bic_without_block"] == pytest.approx(60 - 60 - np.log(300))
+    assert scores["quadratic_drag"]["delta_bic_without_block"] == pytest.approx(40 - np.log(300))
+    assert len(scores["quadratic_drag"]["unit_delta_chi2"]) == frames
+    off = select_effects(Stretches(("quadratic_drag", "time_scale")), SelectionSettings(max_effects=1))
+    assert off.verdict == [] and sorted(off.steps[0].indistinguishable) == ["quadratic_drag", "time_scale"]
+    with pytest.raises(ValueError, match="evidence_blocks"):
+        SelectionSettings(evidence_blocks=0)

@@ -143,12 +143,39 @@ def test_verdict_is_withheld_when_the_final_fit_is_poor(tmp_path, monkeypatch):
         cfg = compose(config_name="config", overrides=[
             "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
             f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
-            "params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.max_effects=1",
+            "params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.evidence_blocks=1", "params.max_effects=1",
             "outputs.overlay_video=false", "quiet=true"])
     run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == [] and content["verdict_withheld"] == ["quadratic_drag"]
     assert "Verdict withheld" in (tmp_path / "report.txt").read_text()
+
+
+def test_report_says_which_frames_an_unnamed_candidate_rests_on(tmp_path):
+    """With no threshold on ΔBIC but the evidence cut into thirds, drag on the small T-handle
+    (which hides nothing) is not named: its ΔBIC without its weakest third is not positive, and
+    the report gives that third's frames."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    from torchfit.run import run
+
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+            f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
+            "params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.max_effects=1",
+            "outputs.overlay_video=false", "quiet=true"])
+    run(cfg, tmp_path)
+    content = json.loads((tmp_path / "discover.json").read_text())
+    score = content["effects"]["quadratic_drag"][0]
+    assert content["verdict"] == [] and score["delta_bic_without_block"] <= 0 and not score["passes"]
+    first, last = score["weakest_block"]
+    frames = content["criterion_frames"]
+    assert 0 <= first < last < len(frames) and last - first + 1 in (len(frames) // 3, len(frames) // 3 + 1)
+    assert "Not named: quadratic_drag" in (tmp_path / "report.txt").read_text()
 
 
 def test_edge_bias_moves_the_outline_by_that_many_pixels():

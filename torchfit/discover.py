@@ -76,6 +76,12 @@ class SelectionSettings:
             look-alike: both are reported as indistinguishable and none is added.
         max_effects: most effects added.
         holdout: fraction of each track (its end) held out for the prediction error.
+        evidence_blocks: when above 1 and the problem reports each unit's chi-squared
+            (``ModelFit.parts``: a video's frames), the units are cut into this many contiguous
+            stretches, and a candidate must still lower the BIC (ΔBIC > 0) with any one stretch's
+            share of its chi-squared change left out. A missing force acts over the whole
+            flight; an error that follows the scene (a segmentation that errs while the object
+            crosses one patch of background) lives in one stretch of it.
     """
 
     min_delta_bic: float = 10.0
@@ -84,10 +90,13 @@ class SelectionSettings:
     lookalike_margin: float = 10.0
     max_effects: int = 4
     holdout: float = 0.25
+    evidence_blocks: int = 1
 
     def __post_init__(self):
         if not 0 < self.holdout < 1:
             raise ValueError(f"holdout must be a fraction in (0, 1), got {self.holdout}")
+        if self.evidence_blocks < 1:
+            raise ValueError(f"evidence_blocks must be >= 1 (1: off), got {self.evidence_blocks}")
         if self.max_effects < 0:
             raise ValueError(f"max_effects must be >= 0, got {self.max_effects}")
 
@@ -194,6 +203,24 @@ def _outside_bounds(name: str, params: dict) -> list[str]:
     return outside
 
 
+def _spread(base: ModelFit, fit: ModelFit, d_bic: float, blocks: int) -> dict:
+    """Where a candidate's evidence lies: its chi-squared change per unit (``unit_delta_chi2``)
+    and, with ``blocks`` > 1, its ΔBIC with the weakest of ``blocks`` contiguous stretches of the
+    units left out (``delta_bic_without_block``; the penalty unchanged) and that stretch's first
+    and last unit (``weakest_block``). Empty when the problem reports no units."""
+    if base.parts is None or fit.parts is None:
+        return {}
+    parts = np.asarray(base.parts) - np.asarray(fit.parts)
+    out: dict = {"unit_delta_chi2": parts.tolist()}
+    if blocks > 1 and len(parts) >= blocks:
+        stretches = np.array_split(np.arange(len(parts)), blocks)
+        left = [d_bic - float(parts[units].sum()) for units in stretches]
+        weakest = int(np.argmin(left))
+        out["delta_bic_without_block"] = left[weakest]
+        out["weakest_block"] = [int(stretches[weakest][0]), int(stretches[weakest][-1])]
+    return out
+
+
 def _scaled(std, factor: float):
     """``std`` (a number or a list of numbers) times ``factor``; NaN where unknown."""
     if isinstance(std, (list, tuple)):
@@ -225,6 +252,7 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             p_value = float(stats.chi2.sf(max(d_chi, 0.0), d_k))
             gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
             outside = _outside_bounds(name, fit.params.get(name, {}))
+            spread = _spread(base, fit, bic_base - bic, settings.evidence_blocks)
             # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
             need = math.sqrt(max(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)), 0.0))
             step.scores[name] = {
@@ -235,9 +263,9 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
                 "heldout_gain": gain, "params": fit.params,
                 "unphysical": outside,
-                **({"unit_delta_chi2": (base.parts - fit.parts).tolist()}
-                   if base.parts is not None and fit.parts is not None else {}),
+                **spread,
                 "passes": bool(bic_base - bic > settings.min_delta_bic and not outside
+                               and spread.get("delta_bic_without_block", 1.0) > 0
                                and (gain >= settings.min_heldout_gain
                                     or (settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise))),
             }
