@@ -204,7 +204,8 @@ def _content(verdict: list[str], truth: dict) -> dict:
     return {"verdict": verdict, "truth_effects": truth, "indistinguishable": [], "seconds": 1.0,
             "iou_baseline": {"mean_fitted": 0.95, "mean_heldout": 0.94},
             "effects": {"quadratic_drag": [{"delta_bic": 20.0, "detectable_above": {"drag_coefficient": 0.3}}],
-                        "time_scale": [{"delta_bic": 3.0, "detectable_above": {"time_scale": 0.01}}]},
+                        "time_scale": [{"delta_bic": 3.0, "detectable_above": {"time_scale": 0.01},
+                                        "unit_delta_chi2": [1.0, 1.0, 6.0]}]},
             "models": [{"heldout_centroid_px": 2.0, "params": {}},
                        {"heldout_centroid_px": 1.0,
                         "params": {"quadratic_drag": {"drag_coefficient": {"value": 0.5, "std": 0.1}}}}]}
@@ -221,6 +222,10 @@ def test_concealed_verdict_is_right_only_when_exactly_the_hidden_effects_are_nam
     quiet = conc.row("control_x", _content([], {}))
     alarm = conc.row("control_x", _content(["time_scale"], {}))
     assert [r["right"] for r in (exact, extra, wrong, quiet, alarm)] == [True, False, False, True, False]
-    assert exact["top_delta_bic"] == ["quadratic_drag", 20.0]
+    assert exact["top_delta_bic"] == ["quadratic_drag", 20.0, None]
+    score = _content([], {})["effects"]["time_scale"][0]
+    assert conc._without_third(score) == pytest.approx(-3.0)  # 3.0 without the last frame's 6.0
+    score["delta_bic_without_block"] = 2.5  # a run with the rule stored it: taken as it is
+    assert conc._without_third(score) == 2.5
     table = conc.table([exact, extra, wrong])
     assert "| NO (also named com_offset) |" in table and table.count("| NO |") == 1

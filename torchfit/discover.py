@@ -59,6 +59,7 @@ __all__ = [
     "locate_points",
     "plot_residuals",
     "select_effects",
+    "without_weakest_block",
 ]
 
 
@@ -203,21 +204,27 @@ def _outside_bounds(name: str, params: dict) -> list[str]:
     return outside
 
 
+def without_weakest_block(parts: Sequence[float], delta_bic: float, blocks: int) -> tuple[float, list[int]]:
+    """A candidate's ΔBIC with the weakest of ``blocks`` contiguous stretches of its per-unit
+    chi-squared change ``parts`` (U,) left out (the penalty unchanged), and that stretch's first and
+    last unit."""
+    parts = np.asarray(parts, dtype=float)
+    stretches = np.array_split(np.arange(len(parts)), blocks)
+    left = [delta_bic - float(parts[units].sum()) for units in stretches]
+    weakest = int(np.argmin(left))
+    return left[weakest], [int(stretches[weakest][0]), int(stretches[weakest][-1])]
+
+
 def _spread(base: ModelFit, fit: ModelFit, d_bic: float, blocks: int) -> dict:
     """Where a candidate's evidence lies: its chi-squared change per unit (``unit_delta_chi2``)
-    and, with ``blocks`` > 1, its ΔBIC with the weakest of ``blocks`` contiguous stretches of the
-    units left out (``delta_bic_without_block``; the penalty unchanged) and that stretch's first
-    and last unit (``weakest_block``). Empty when the problem reports no units."""
+    and, with ``blocks`` > 1, :func:`without_weakest_block` (``delta_bic_without_block``,
+    ``weakest_block``). Empty when the problem reports no units."""
     if base.parts is None or fit.parts is None:
         return {}
     parts = np.asarray(base.parts) - np.asarray(fit.parts)
     out: dict = {"unit_delta_chi2": parts.tolist()}
     if blocks > 1 and len(parts) >= blocks:
-        stretches = np.array_split(np.arange(len(parts)), blocks)
-        left = [d_bic - float(parts[units].sum()) for units in stretches]
-        weakest = int(np.argmin(left))
-        out["delta_bic_without_block"] = left[weakest]
-        out["weakest_block"] = [int(stretches[weakest][0]), int(stretches[weakest][-1])]
+        out["delta_bic_without_block"], out["weakest_block"] = without_weakest_block(parts, d_bic, blocks)
     return out
 
 

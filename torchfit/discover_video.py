@@ -91,11 +91,12 @@ FRAME_CORRELATION = 0.4
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
 
-# Selection on video (evidence_blocks: see SelectionSettings; each third of the criterion frames left
-# out in turn, the candidate must still lower the BIC. On the concealed set's segmented video the
-# spurious names rested on one third: magnus_cylinder's clock (ΔBIC 10.1, -1.5 without frames
-# 36-53) and drag_tshape's second-round com_offset (15.5, -0.7), where the right names kept 4.8
-# (time_tshape) to 246 (com_cylinder); experiments/discover/README.md.)
+# Selection on video (evidence_blocks: see SelectionSettings): with each third of the criterion frames'
+# evidence left out in turn, a candidate must still lower the BIC. On the concealed set's segmented
+# video, run without the rule, the two spurious names did not survive it: magnus_cylinder's clock
+# (ΔBIC 10.1; -1.5 without frames 0-17) and drag_tshape's second-round com_offset (15.5; -0.7
+# without frames 0-14), while the right names kept 4.8 (time_tshape) to 246 (com_cylinder); see
+# experiments/discover/README.md.
 # The held-out error may not grow by more than 5 % (it need not shrink), unless
 # it stays within 1.5 noise floors (RMS): at the noise level the relative rule compares noise with noise. A
 # frame-rate error and a depth moved with the outline (the edge bias) predict the same centroids, so
