@@ -707,7 +707,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         content["verdict_withheld"], content["verdict"] = content["verdict"], []
     content["report"] = report = _report_lines(selection, chain, located, video,
                                                content["iou_final"]["mean_fitted"] if withheld else None,
-                                               settings.min_delta_bic)
+                                               min_delta_bic=settings.min_delta_bic)
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)
@@ -734,8 +734,8 @@ def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
             for name in CHANNELS}
 
 
-def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None = None,
-                  min_delta_bic: float = 10.0) -> list[str]:
+def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None, *,
+                  min_delta_bic: float) -> list[str]:
     """A report a person reads in a minute (``withheld_iou``: the final model's mean IoU when the
     verdict is withheld for it; ``min_delta_bic``: the criterion's threshold)."""
     base, final = chain[0], chain[-1]

@@ -95,7 +95,7 @@ def _without_third(score: dict) -> float | None:
     if "delta_bic_without_block" in score:
         return score["delta_bic_without_block"]
     if "unit_delta_chi2" in score:
-        return without_weakest_block(score["unit_delta_chi2"], score["delta_bic"], 3)[0]
+        return without_weakest_block(score["unit_delta_chi2"], score["delta_bic"], VIDEO_SELECTION.evidence_blocks)[0]
     return None
 
 
@@ -115,8 +115,8 @@ def table(rows: list[dict]) -> str:
                                                if r["indistinguishable"] else "none")
         if r.get("verdict_withheld"):
             verdict = f"withheld (poor fit): {', '.join(r['verdict_withheld'])}"
-        top, top_bic, *rest = r["top_delta_bic"]
-        without = f" ({rest[0]:.1f})" if rest and rest[0] is not None else ""
+        top, top_bic, top_thirds = r["top_delta_bic"]
+        without = f" ({top_thirds:.1f})" if top_thirds is not None else ""
         mark = "" if r.get("thirds_rule") else " †"  # run before the thirds rule
         lines.append(f"| {r['recording']}{mark} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{_right(r)} | {r['iou_baseline']['mean_fitted']:.3f} / "
@@ -143,9 +143,10 @@ def rebuild(out: Path = OUT) -> str:
     """summary.json and table.md from every discover.json under ``out`` (no fitting: rows of other
     runs and earlier ones are read back the same way); returns the table."""
     rows = [row(f.parent.name, json.loads(f.read_text())) for f in sorted(out.glob("*/discover.json"))]
+    text = table(rows)
     (out / "summary.json").write_text(json.dumps(rows, indent=1))
-    (out / "table.md").write_text(table(rows) + "\n")
-    return table(rows)
+    (out / "table.md").write_text(text + "\n")
+    return text
 
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False) -> None:
