@@ -129,6 +129,17 @@ def test_light_drag_recordings_are_the_heavy_throws_with_a_quarter_of_the_mass(m
         assert light.density == pytest.approx(specs[heavy].density / 4, rel=0.01)
 
 
+def test_fresh_set_changes_only_the_seeds_and_the_scene(mods):
+    """--fresh K: the same recipes with other throws (seed + 1000 K) over background scene K."""
+    _, mc = mods
+    first, fresh = mc.concealed_specs(), mc.concealed_specs(2)
+    assert [s.name for s, _ in first] == [s.name for s, _ in fresh]
+    for (a, what_a), (b, what_b) in zip(first, fresh):
+        assert (b.seed, b.scene_seed, what_b) == (a.seed + 2000, 2, what_a)
+        assert b.replace(seed=a.seed, scene_seed=a.scene_seed) == a
+    assert mc.fresh_folder(0).name == "recordings" and mc.fresh_folder(2).name == "recordings_fresh2"
+
+
 def test_summary_merge_keeps_rows_not_remade(mods):
     _, mc = mods
     kept = [{"name": "control_ball", "v": 1}, {"name": "drag_ball", "v": 1}]

@@ -5,6 +5,7 @@
     python experiments/discover/concealed.py --table                 # the table from the outputs
     python experiments/discover/concealed.py --true-masks [names...] # MuJoCo's true masks instead
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
+    python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
 experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
@@ -14,7 +15,10 @@ engine's) is printed and written to results/concealed/table.md and summary.json.
 (results/concealed_true_masks/): what the physics, the noise model and the criterion do when
 the segmentation makes no error. With ``--shipped`` it runs on the recordings shipped in
 torchfit/recordings (results/shipped/), which hide nothing and calibrated the noise model: what
-segmentation error alone scores there.
+segmentation error alone scores there. With ``--fresh K`` it runs on the fresh set K made by
+``make_concealed.py --fresh K`` (same recipes, other throws and background; results/concealed_fresh<K>/,
+with ``--true-masks`` results/concealed_fresh<K>_true_masks/): a check of every choice made while
+looking at the first set.
 """
 
 from __future__ import annotations
@@ -60,7 +64,7 @@ def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float
     return images[np.argmin(np.linalg.norm(images - np.asarray(true), axis=1))].tolist()
 
 
-def row(name: str, content: dict) -> dict:
+def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
     truth = list(content.get("truth_effects", {}))
     verdict = content["verdict"]
     # right: exactly the hidden effects named (a spurious second name is a wrong verdict too)
@@ -73,7 +77,7 @@ def row(name: str, content: dict) -> dict:
                           for p, v in fitted.items()}
         if effect == "com_offset" and "offset" in params[effect]:  # compare modulo the shape's symmetry
             entry = params[effect]["offset"]
-            entry["fitted"] = _aligned(RECORDINGS / name, entry["fitted"], entry["true"])
+            entry["fitted"] = _aligned(recordings / name, entry["fitted"], entry["true"])
     # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
     limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
     # round one's strongest candidate, passing or not: how close a control came to a false alarm
@@ -139,36 +143,49 @@ def _fmt(value) -> str:
     return f"{value:.3g}"
 
 
-def rebuild(out: Path = OUT) -> str:
+def rebuild(out: Path = OUT, recordings: Path = RECORDINGS) -> str:
     """summary.json and table.md from every discover.json under ``out`` (no fitting: rows of other
     runs and earlier ones are read back the same way); returns the table."""
-    rows = [row(f.parent.name, json.loads(f.read_text())) for f in sorted(out.glob("*/discover.json"))]
+    rows = [row(f.parent.name, json.loads(f.read_text()), recordings) for f in sorted(out.glob("*/discover.json"))]
     text = table(rows)
     (out / "summary.json").write_text(json.dumps(rows, indent=1))
     (out / "table.md").write_text(text + "\n")
     return text
 
 
-def main(names: list[str], true_masks: bool = False, shipped: bool = False) -> None:
-    out = OUT.with_name("shipped") if shipped else OUT.with_name("concealed_true_masks") if true_masks else OUT
+def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0) -> None:
+    recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
+    if shipped:
+        out = OUT.with_name("shipped")
+    else:
+        out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else ""))
     if names == ["--table"]:
-        return print(rebuild(out))
+        return print(rebuild(out, recordings))
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
-    elif not RECORDINGS.exists():
-        sys.exit(f"no recordings in {RECORDINGS}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py")
+    elif not recordings.exists():
+        sys.exit(f"no recordings in {recordings}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py"
+                 + (f" --fresh {fresh}" if fresh else ""))
     else:
-        folders = [RECORDINGS / n for n in names] if names else sorted(p for p in RECORDINGS.iterdir() if p.is_dir())
+        folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
-        summary = rebuild(out)  # after each recording, with what other runs have written meanwhile
+        summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
     print(summary)
 
 
 if __name__ == "__main__":
+    args = sys.argv[1:]
+    fresh = 0
+    if "--fresh" in args:
+        at = args.index("--fresh")
+        if at + 1 >= len(args) or not args[at + 1].isdigit() or int(args[at + 1]) < 1:
+            sys.exit(f"--fresh needs a set number K >= 1, got {args[at + 1:at + 2] or 'nothing'}")
+        fresh = int(args.pop(at + 1))
+        args.pop(at)
     flags = ("--true-masks", "--shipped")
-    main([a for a in sys.argv[1:] if a not in flags], "--true-masks" in sys.argv[1:], "--shipped" in sys.argv[1:])
+    main([a for a in args if a not in flags], "--true-masks" in args, "--shipped" in args, fresh)

@@ -14,7 +14,8 @@ Make them all (from the repository root, ~2 minutes on one core)::
     MUJOCO_GL=osmesa python experiments/discover/make_concealed.py
 
 Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), ``--only a,b``,
-``--list``, ``--markdown`` (print the table as Markdown, as in CONCEALED.md).
+``--list``, ``--markdown`` (print the table as Markdown, as in CONCEALED.md), ``--fresh K``
+(a fresh set from the same recipes: other seeds and background scene K, in recordings_fresh<K>/).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -55,9 +56,16 @@ def lift(magnus: float) -> dict:
     return {**AIR, "fluidcoef": (0.0, 0.0, 0.0, 1.0, magnus)}
 
 
-def concealed_specs() -> list[tuple[mr.RecordingSpec, str]]:
-    """(spec, what it hides) for every recording of the concealed set."""
-    S = mr.RecordingSpec
+def concealed_specs(fresh: int = 0) -> list[tuple[mr.RecordingSpec, str]]:
+    """(spec, what it hides) for every recording of the concealed set.
+
+    ``fresh`` > 0 gives a fresh set: the same recipes (objects, effects and their sizes, camera,
+    frame counts) with every seed moved by 1000 * fresh, so other throws, spins and sensor noise,
+    and background scene ``fresh`` instead of 0 (the shipped recordings and the first set use 0).
+    """
+    def S(**kw):
+        kw["seed"] += 1000 * fresh
+        return mr.RecordingSpec(scene_seed=fresh, **kw)
     base = {"write_effects": True, "n_frames": 45, "fps": 60.0}
     tennis = {"shape": "sphere", "ball_radius": 0.033, "density": 380.0}  # 57 g, a tennis ball
     foam = {"shape": "sphere", "ball_radius": 0.035, "density": 150.0}  # 27 g foam ball
@@ -186,13 +194,17 @@ def effect_size(spec: mr.RecordingSpec, folder: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default=str(DEFAULT_OUT), help="output folder")
+    ap.add_argument("--out", default=None, help="output folder (default recordings/, or recordings_fresh<K>/)")
+    ap.add_argument("--fresh", type=int, default=0, metavar="K",
+                    help="a fresh set: seeds moved by 1000 K, background scene K (K >= 1)")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     args = ap.parse_args(argv)
     os.environ.setdefault("MUJOCO_GL", "osmesa")
-    specs = concealed_specs()
+    if args.fresh < 0:
+        raise SystemExit(f"--fresh must be >= 0, got {args.fresh}")
+    specs = concealed_specs(args.fresh)
     if args.list:
         for s, what in specs:
             print(f"{s.name:18s} {what}")
@@ -203,7 +215,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out)
+    out = Path(args.out) if args.out else fresh_folder(args.fresh)
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)
@@ -230,6 +242,11 @@ def main(argv=None) -> int:
             print(f"{r['name']:18s} {r['last_px']:6.1f} px (worst {r['max_px']:5.1f})  "
                   f"r={r['object_radius_px']:3.0f} px  {eff}")
     return 0
+
+
+def fresh_folder(fresh: int) -> Path:
+    """Where set ``fresh`` lives by default (0: the first set)."""
+    return DEFAULT_OUT.with_name(f"recordings_fresh{fresh}") if fresh else DEFAULT_OUT
 
 
 def merge_summary(kept: list[dict], made: list[dict]) -> list[dict]:
