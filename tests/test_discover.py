@@ -165,6 +165,7 @@ def test_evidence_resting_on_one_stretch_of_frames_is_not_named():
     assert both.verdict == ["quadratic_drag"]
     scores = both.steps[0].scores
     assert scores["time_scale"]["delta_bic"] > 10 and not scores["time_scale"]["passes"]
+    assert scores["time_scale"]["fails"] == ["evidence_spread"] and scores["quadratic_drag"]["fails"] == []
     assert scores["time_scale"]["weakest_block"] == [40, 59]
     assert scores["time_scale"]["delta_bic_without_block"] == pytest.approx(60 - 60 - np.log(300))
     assert scores["quadratic_drag"]["delta_bic_without_block"] == pytest.approx(40 - np.log(300))

@@ -175,7 +175,8 @@ def test_report_says_which_frames_an_unnamed_candidate_rests_on(tmp_path):
     first, last = score["weakest_block"]
     frames = content["criterion_frames"]
     assert 0 <= first < last < len(frames) and last - first + 1 in (len(frames) // 3, len(frames) // 3 + 1)
-    assert "Not named: quadratic_drag" in (tmp_path / "report.txt").read_text()
+    assert "evidence_spread" in score["fails"]
+    assert f"rests on frames {frames[first]}-{frames[last]} " in (tmp_path / "report.txt").read_text()
 
 
 def test_edge_bias_moves_the_outline_by_that_many_pixels():

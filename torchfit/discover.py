@@ -260,6 +260,12 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
             outside = _outside_bounds(name, fit.params.get(name, {}))
             spread = _spread(base, fit, bic_base - bic, settings.evidence_blocks)
+            heldout_ok = gain >= settings.min_heldout_gain or (
+                settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise)
+            fails = [test for test, failed in (
+                ("delta_bic", not bic_base - bic > settings.min_delta_bic), ("unphysical", bool(outside)),
+                ("evidence_spread", not spread.get("delta_bic_without_block", 1.0) > 0),
+                ("heldout", not heldout_ok)) if failed]
             # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
             need = math.sqrt(max(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)), 0.0))
             step.scores[name] = {
@@ -271,10 +277,7 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_gain": gain, "params": fit.params,
                 "unphysical": outside,
                 **spread,
-                "passes": bool(bic_base - bic > settings.min_delta_bic and not outside
-                               and spread.get("delta_bic_without_block", 1.0) > 0
-                               and (gain >= settings.min_heldout_gain
-                                    or (settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise))),
+                "fails": fails, "passes": not fails,
             }
             say(f"  + {name}: ΔBIC {bic_base - bic:.1f}, held-out {base.heldout_rms:.4g} -> {fit.heldout_rms:.4g}")
         steps.append(step)

@@ -706,8 +706,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     if withheld:
         content["verdict_withheld"], content["verdict"] = content["verdict"], []
     content["report"] = report = _report_lines(selection, chain, located, video,
-                                               content["iou_final"]["mean_fitted"] if withheld else None,
-                                               min_delta_bic=settings.min_delta_bic)
+                                               content["iou_final"]["mean_fitted"] if withheld else None)
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)
@@ -734,10 +733,10 @@ def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
             for name in CHANNELS}
 
 
-def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None, *,
-                  min_delta_bic: float) -> list[str]:
+def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None) -> list[str]:
     """A report a person reads in a minute (``withheld_iou``: the final model's mean IoU when the
-    verdict is withheld for it; ``min_delta_bic``: the criterion's threshold)."""
+    verdict is withheld for it). Every candidate that lowers the BIC by more than the threshold
+    and is not named gets a line saying which test it failed."""
     base, final = chain[0], chain[-1]
     lines = [f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}."]
     if withheld_iou is not None:
@@ -786,11 +785,21 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     frames = np.flatnonzero(video.problem.used.cpu().numpy())
     for step in selection.steps:
         for name, score in step.scores.items():
-            if score["delta_bic"] > min_delta_bic and score.get("delta_bic_without_block", 1.0) <= 0:
+            if "delta_bic" in score["fails"]:
+                continue
+            reasons = []  # why a candidate that lowers the BIC enough is not named, in words
+            if "unphysical" in score["fails"]:
+                reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
+            if "heldout" in score["fails"]:
+                reasons.append(f"it predicts the held-out frames worse ({score['heldout_rms_before']:.2f} -> "
+                               f"{score['heldout_rms_after']:.2f} noise floors)")
+            if "evidence_spread" in score["fails"]:
                 first, last = (int(frames[i]) for i in score["weakest_block"])
-                lines.append(f"Not named: {name} lowers the BIC by {score['delta_bic']:.1f}, but its evidence rests on "
-                             f"frames {first}-{last} of the fitted span (ΔBIC {score['delta_bic_without_block']:.1f} "
-                             "without them): one stretch of the scene, not a force over the whole flight.")
+                reasons.append(f"its evidence rests on frames {first}-{last} of the fitted span "
+                               f"(ΔBIC {score['delta_bic_without_block']:.1f} without them): one stretch of the "
+                               "scene, not a force over the whole flight")
+            if reasons:
+                lines.append(f"Not named: {name} lowers the BIC by {score['delta_bic']:.1f}, but " + "; and ".join(reasons) + ".")
         ranked = sorted(step.scores.items(), key=lambda kv: -kv[1]["delta_bic"])[:3]
         lines.append(f"Round {'+'.join(step.base) or 'baseline'}: " + "; ".join(
             f"{n} ΔBIC {s['delta_bic']:.1f}, held-out gain {100 * s['heldout_gain']:.0f}%" for n, s in ranked))
