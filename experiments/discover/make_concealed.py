@@ -124,13 +124,16 @@ def concealed_specs(fresh: int = 0) -> list[tuple[mr.RecordingSpec, str]]:
            tilt_deg=12.0, roll_deg=-3.0, seed=132, **{**base, "fps": 58.5}),
          "clock: 58.5 fps stated as 60"),
         # ---- lens distortion missing from camera.json; throws across the whole width ----
+        # (min_iou: the generator's own check of its masks, the numpy rasteriser against MuJoCo's
+        # render resampled through the distortion, is looser for a thin T-handle: the first set's
+        # lens_tshape passed at 0.951 in its worst frame, fresh set 1's at 0.947)
         (S(name="lens_tshape", shape="tshape", distortion=(-0.08, 0.01), u_start=(0.07, 0.1),
            u_end=(0.9, 0.93), spin_rate=9.0, spin_axis="major", spin_wobble=0.3, tilt_deg=8.0,
-           roll_deg=4.0, depth_range=(1.3, 1.5), seed=141, **base),
+           roll_deg=4.0, depth_range=(1.3, 1.5), seed=141, min_iou=0.94, **base),
          "barrel distortion k1 -0.08, k2 0.01"),
         (S(name="lens_box", shape="box", distortion=(-0.2, 0.04), u_start=(0.07, 0.1),
            u_end=(0.9, 0.93), spin_rate=10.0, spin_axis="random", tilt_deg=10.0, roll_deg=-6.0,
-           depth_range=(1.3, 1.5), seed=142, **base),
+           depth_range=(1.3, 1.5), seed=142, min_iou=0.94, **base),
          "barrel distortion k1 -0.2, k2 0.04"),
         # ---- controls: nothing missing ----
         (S(name="control_tshape", shape="tshape", spin_rate=10.0, spin_axis="major",
