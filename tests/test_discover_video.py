@@ -260,3 +260,31 @@ def test_added_effect_starts_from_the_screened_start_nearest_the_data():
     assert float(start.values["time_scale"]["time_scale"]) == pytest.approx(1.01)
     final, _, _ = video._lm(screened, used, video.iterations)
     assert float(final.values["time_scale"]["time_scale"]) == pytest.approx(1.04, abs=0.005)
+
+
+def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch):
+    """A trial step that takes a parameter out of its effect's domain (make_effect raises, e.g. a
+    clock factor of -3e4 seen on a fresh concealed recording) is a refused step: more damping,
+    not a crash. Here the first two trial steps are made to leave the domain."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
+    video = dv.VideoProblem(problem, candidates=("time_scale",))
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(model)
+    used = video.problem.used.cpu().numpy().astype(bool)
+    start = video._extend(model, ("time_scale",))
+    start.values["time_scale"]["time_scale"] = torch.tensor(1.01, dtype=torch.float64)
+    build, calls = video._build, []
+
+    def out_of_domain(model, state, extra):
+        if bool(state.any()) and bool(extra.any()):  # an LM trial step (a Jacobian column moves one or the other)
+            calls.append(len(calls))
+            if len(calls) <= 2:
+                raise ValueError("time_scale must be positive and finite, got -32976.8")
+        return build(model, state, extra)
+
+    monkeypatch.setattr(video, "_build", out_of_domain)
+    final, _, _ = video._lm(start, used, video.iterations)
+    assert len(calls) > 3
+    assert float(final.values["time_scale"]["time_scale"]) == pytest.approx(1.04, abs=0.005)

@@ -413,7 +413,11 @@ class VideoProblem:
             for _ in range(8):
                 delta = -torch.linalg.solve(jtj + damping * torch.diag(scale), grad)
                 with torch.no_grad():
-                    cands, effects, edge = self._build(model, delta[:14][None], delta[14:])
+                    try:
+                        cands, effects, edge = self._build(model, delta[:14][None], delta[14:])
+                    except ValueError:  # the step leaves an effect's domain (e.g. a clock factor <= 0)
+                        damping *= 4
+                        continue
                     trial = self._vector(cands, effects, edge, mask_t)[0].double()
                 trial_cost = self._cost(trial)
                 if trial_cost < cost:
