@@ -1,6 +1,6 @@
 """Where each candidate's evidence lies, from the per-frame chi-squared change discover stores.
 
-    python experiments/discover/evidence_spread.py [concealed concealed_true_masks shipped]
+    python experiments/discover/evidence_spread.py [concealed concealed_true_masks concealed_fresh1 ... shipped]
 
 For every scored candidate of every discover.json under results/<set>/ that stores
 ``unit_delta_chi2``: its ΔBIC, and its ΔBIC with the weakest of 3, 4 or 5 contiguous stretches of
@@ -58,4 +58,5 @@ def main(sets: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:] or ["concealed", "concealed_true_masks", "shipped"])
+    main(sys.argv[1:] or ["concealed", "concealed_true_masks", "concealed_fresh1", "concealed_fresh1_true_masks",
+                          "shipped"])
