@@ -23,6 +23,7 @@ looking at the first set.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
@@ -153,13 +154,14 @@ def rebuild(out: Path = OUT, recordings: Path = RECORDINGS) -> str:
     return text
 
 
-def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0) -> None:
+def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
+         table_only: bool = False) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
     if shipped:
         out = OUT.with_name("shipped")
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else ""))
-    if names == ["--table"]:
+    if table_only:
         return print(rebuild(out, recordings))
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
@@ -179,13 +181,13 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    fresh = 0
-    if "--fresh" in args:
-        at = args.index("--fresh")
-        if at + 1 >= len(args) or not args[at + 1].isdigit() or int(args[at + 1]) < 1:
-            sys.exit(f"--fresh needs a set number K >= 1, got {args[at + 1:at + 2] or 'nothing'}")
-        fresh = int(args.pop(at + 1))
-        args.pop(at)
-    flags = ("--true-masks", "--shipped")
-    main([a for a in args if a not in flags], "--true-masks" in args, "--shipped" in args, fresh)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("names", nargs="*", help="recordings (default: all of the set)")
+    ap.add_argument("--table", action="store_true", help="only rebuild the table from the outputs")
+    ap.add_argument("--true-masks", action="store_true", help="MuJoCo's true masks instead of the segmentation")
+    ap.add_argument("--shipped", action="store_true", help="the shipped recordings (hide nothing)")
+    ap.add_argument("--fresh", type=int, default=0, metavar="K", help="fresh set K (make_concealed.py --fresh K)")
+    args = ap.parse_args()
+    if args.fresh < 0:
+        ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
+    main(args.names, args.true_masks, args.shipped, args.fresh, args.table)
