@@ -149,6 +149,15 @@ EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 
 
+def signed_distance(mask: np.ndarray) -> np.ndarray:
+    """(H, W) float32 Euclidean signed distance of an (H, W) bool mask's pixels to its outline:
+    positive inside, ±1/2 at the pixels either side of it; the image border counts as outside."""
+    padded = np.pad(mask, 1).astype(np.uint8)
+    inside = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    outside = cv2.distanceTransform(1 - padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    return np.where(mask, inside - 0.5, 0.5 - outside).astype(np.float32)
+
+
 def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID) -> Tensor:
     """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of ``grid``.
 
@@ -167,10 +176,7 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID) -> Tensor:
             continue
         y0, x0 = max(rows[0] - margin, 0), max(cols[0] - margin, 0)
         crop = mask[y0:rows[-1] + margin + 1, x0:cols[-1] + margin + 1]
-        padded = np.pad(crop, 1).astype(np.uint8)  # the image border counts as outside
-        inside = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
-        outside = cv2.distanceTransform(1 - padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
-        signed = torch.as_tensor(np.where(crop, inside - 0.5, 0.5 - outside), dtype=torch.float64)
+        signed = torch.as_tensor(signed_distance(crop), dtype=torch.float64)
         cover = (signed[None] - grid[:, None, None] + 0.5).clamp(0.0, 1.0)  # (K, h, w)
         v, u = torch.meshgrid(torch.arange(crop.shape[0], dtype=torch.float64) + y0,
                               torch.arange(crop.shape[1], dtype=torch.float64) + x0, indexing="ij")

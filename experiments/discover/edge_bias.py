@@ -6,7 +6,7 @@ true perimeter, averaged over the used frames. It is what discover's edge-bias n
     python experiments/discover/edge_bias.py      # ~1 min; writes results/edge_bias.json
 
 `--by-normal` splits the bias by the direction of the outline: on the silhouette's long sides
-(outline normal within 66 degrees of the minor axis) and at its ends (within 37 degrees of the
+(outline normal within 24 degrees of the minor axis) and at its ends (within 37 degrees of the
 major axis), on the control and clock recordings of the first set and of fresh set 1
 (`make_concealed.py --fresh 1`). A single scalar bias, which discover fits, cannot make a
 silhouette fatter and shorter at once.
@@ -20,8 +20,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from make_concealed import fresh_folder
 
-from torchfit.video import load_observation
+from torchfit.discover_video import signed_distance
+from torchfit.video import Observation, load_observation
 
 ROOT = Path(__file__).resolve().parents[2]
 FOLDERS = [ROOT / "torchfit" / "recordings", ROOT / "experiments" / "discover" / "recordings"]
@@ -34,51 +36,46 @@ def outline(masks: np.ndarray) -> np.ndarray:
     return masks & ~inner
 
 
-def edge_bias(folder: Path) -> float:
+def _load(folder: Path) -> tuple[Observation, np.ndarray]:
+    """The recording's segmented observation and its (T, H, W) bool true masks."""
     observation = load_observation(folder / "video.mp4", camera=folder / "camera.json")
     with np.load(folder / "masks.npz") as data:
-        truth = data["masks"].astype(bool)
+        return observation, data["masks"].astype(bool)
+
+
+def edge_bias(folder: Path) -> float:
+    observation, truth = _load(folder)
     perimeter = outline(truth).sum((1, 2))
     bias = (observation.masks.sum((1, 2)) - truth.sum((1, 2))) / np.maximum(perimeter, 1)
     return float(bias[observation.used].mean())
-
-
-def _signed(mask: np.ndarray) -> np.ndarray:
-    """(H, W) float32 signed distance of an (H, W) bool mask's pixels to its outline (positive inside)."""
-    padded = np.pad(mask, 1).astype(np.uint8)  # the image border counts as outside
-    inside = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
-    outside = cv2.distanceTransform(1 - padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
-    return np.where(mask, inside - 0.5, 0.5 - outside).astype(np.float32)
 
 
 def edge_bias_by_normal(folder: Path) -> dict:
     """Mean bias (pixels, segmented outline outside the true one when positive) over the true
     outline's pixels, by |cos| of the angle between the outline normal and the major axis:
     ``sides`` [0, 0.4), ``oblique`` [0.4, 0.8) (mostly corners), ``ends`` [0.8, 1]."""
-    observation = load_observation(folder / "video.mp4", camera=folder / "camera.json")
-    with np.load(folder / "masks.npz") as data:
-        truth = data["masks"].astype(bool)
+    observation, truth = _load(folder)
     parts: dict = {"sides": [], "oblique": [], "ends": []}
     for t in np.flatnonzero(observation.used):
-        true_signed = _signed(truth[t])
+        true_signed = signed_distance(truth[t])
         gy, gx = np.gradient(cv2.GaussianBlur(true_signed, (5, 5), 1.0))
         ys, xs = np.nonzero(truth[t])
         major = np.linalg.eigh(np.cov(np.stack([xs, ys]).astype(float)))[1][:, 1]
         edge = np.abs(true_signed) < 0.6  # the pixels beside the true outline, either side
         normal = np.stack([gx[edge], gy[edge]], -1)
         cos = np.abs(normal @ major) / (np.linalg.norm(normal, axis=1) + 1e-9)
-        bias = _signed(observation.masks[t])[edge] - true_signed[edge]
+        bias = signed_distance(observation.masks[t])[edge] - true_signed[edge]
         for (name, values), (lo, hi) in zip(parts.items(), [(0, 0.4), (0.4, 0.8), (0.8, 1.01)]):
             values.append(bias[(cos >= lo) & (cos < hi)])
     return {name: float(np.concatenate(values).mean()) for name, values in parts.items()}
 
 
 def by_normal() -> dict:
-    here = Path(__file__).resolve().parent
     rows = {}
-    for set_name in ["recordings", "recordings_fresh1"]:
+    for base in (fresh_folder(0), fresh_folder(1)):
+        set_name = base.name
         for name in ["control_cylinder", "control_tshape", "control_box", "time_tshape", "time_box", "drag_light_ball"]:
-            folder = here / set_name / name
+            folder = base / name
             if not (folder / "masks.npz").exists():
                 continue
             rows[f"{set_name}/{name}"] = row = edge_bias_by_normal(folder)
