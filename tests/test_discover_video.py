@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchfit.camera import Camera
-from torchfit.discover_video import EDGE_PRIOR_PX
+from torchfit.discover_video import EDGE_PRIOR_PX, EDGE_SHAPE_PRIOR_PX
 from torchfit.dynamics import RigidBody, simulate
 from torchfit.effects import LensDistortion, make_effect
 from torchfit.render import RenderMesh, full_window, render_silhouettes
@@ -118,7 +118,8 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     # (one observation that is no frame) it is the model's chi-squared
     base = content["models"][0]
     assert len(base["frame_chi2"]) == len(content["criterion_frames"]) == len(tried["unit_delta_chi2"]) > 8
-    prior = (base["edge_px"]["value"] / EDGE_PRIOR_PX) ** 2
+    edge = base["edge_px"]
+    prior = (edge["value"] / EDGE_PRIOR_PX) ** 2 + (edge["ends_minus_sides"] / 2 / EDGE_SHAPE_PRIOR_PX) ** 2
     assert sum(base["frame_chi2"]) + prior == pytest.approx(base["chi2_per_obs"] * base["n_obs"], rel=1e-9)
     edge = content["models"][0]["edge_px"]
     assert abs(edge["value"]) < 1.0 and edge["std"] > 0
@@ -192,13 +193,42 @@ def test_edge_bias_moves_the_outline_by_that_many_pixels():
     square[30:70, 40:100] = True
     table = _edge_moments(np.stack([disc, square]))
     exact = mask_moments(torch.as_tensor(np.stack([disc, square]), dtype=F64))
-    for got, want in zip(_moments_at(table, 0.0), exact):
+    for got, want in zip(_moments_at(table, (0.0, 0.0)), exact):
         torch.testing.assert_close(got, want)
     for bias in (-1.0, -0.4, 0.3, 1.0):
-        area, centre, _ = _moments_at(table, bias)
+        area, centre, _ = _moments_at(table, (bias, 0.0))
         assert area[1] == pytest.approx((40 - 2 * bias) * (60 - 2 * bias), rel=2e-3)
         assert area[0] == pytest.approx(np.pi * (20 - bias) ** 2, rel=0.02)
         torch.testing.assert_close(centre, exact[1], atol=0.02, rtol=0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 35.0, 45.0, 90.0])
+def test_edge_bias_second_term_moves_the_ends_against_the_sides(angle):
+    """b1 moves the outline by b1 cos(2 phi): inward at the ends of the long axis as b0 = b1 would,
+    outward on the sides as b0 = -b1 would, so a bar gets shorter and fatter whatever its angle.
+    (On a rotated pixel staircase the signed distance moves the outline by 0.8-0.95 of b: 0.95 of
+    1 px on this bar at 0 and 90 degrees, 0.79 at 45.)"""
+    from torchfit.discover_video import _edge_moments, _moments_at
+
+    length, width = 90.0, 30.0
+    v, u = np.mgrid[:160, :200].astype(float)
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    along, across = (u - 100.2) * c + (v - 80.4) * s, -(u - 100.2) * s + (v - 80.4) * c
+    bar = (np.abs(along) <= length / 2) & (np.abs(across) <= width / 2)
+    table = _edge_moments(bar[None])
+    axis, normal = torch.tensor([c, s], dtype=F64), torch.tensor([-s, c], dtype=F64)
+
+    def extents(bias):  # length and width of a uniform bar with these second moments
+        _, _, cov = _moments_at(table, bias)
+        return np.array([float(torch.sqrt(12 * d @ cov[0] @ d)) for d in (axis, normal)])
+
+    base = extents((0.0, 0.0))
+    for b1 in (-0.5, 0.3, 0.5):
+        moved = extents((0.0, b1)) - base
+        as_b0 = extents((b1, 0.0)) - base  # both ends and sides moved in by b1
+        assert np.sign(moved[0]) == -np.sign(b1) and np.sign(moved[1]) == np.sign(b1)
+        assert moved[0] == pytest.approx(as_b0[0], abs=0.15)
+        assert moved[1] == pytest.approx(-as_b0[1], abs=0.15)
 
 
 @pytest.mark.parametrize("name, limit", [("cylinder", 0.001), ("tshape", 0.0025)])

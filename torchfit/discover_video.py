@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import cv2
+import kornia
 import numpy as np
 import torch
 from torch import Tensor
@@ -62,8 +63,8 @@ from .search import (
 )
 from .video import _boxes
 
-__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EFFECT_SCALES", "VIDEO_EFFECTS", "VIDEO_SELECTION",
-           "VideoProblem", "discover_video", "render_residuals"]
+__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "VIDEO_EFFECTS",
+           "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
 
 # Effects a silhouette can see. rolling_shutter needs a per-row time in the renderer (not done).
 VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
@@ -147,6 +148,14 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
+# The nuisance's second term: the bias is b0 + b1 cos(2 phi), phi the angle between the outline
+# normal and the silhouette's major axis (b1 > 0: the ends move in more than the sides, a shorter
+# and fatter outline). Measured against the true masks (edge_bias.py --by-normal, ends minus sides,
+# which is 2 b1): -0.20 and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14
+# on control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter
+# through a false clock of 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
+EDGE_SHAPE_PRIOR_PX = 0.15
+_EDGE_SHAPE_GRID = torch.linspace(-0.6, 0.6, 13, dtype=torch.float64)  # b1 tabulated, pixels
 
 
 def signed_distance(mask: np.ndarray) -> np.ndarray:
@@ -158,18 +167,32 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
     return np.where(mask, inside - 0.5, 0.5 - outside).astype(np.float32)
 
 
-def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID) -> Tensor:
-    """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of ``grid``.
+def _axis_cosine(signed: Tensor, mask: np.ndarray) -> Tensor:
+    """(h, w) cos(2 phi) of each pixel: phi the angle between the outline normal there (the gradient
+    of the Gaussian-blurred (h, w) signed distance) and the major axis of the (h, w) bool mask."""
+    blurred = kornia.filters.gaussian_blur2d(signed[None, None], (7, 7), (1.5, 1.5), border_type="replicate")
+    grad = kornia.filters.spatial_gradient(blurred, normalized=False)[0, 0]  # (2, h, w): d/du, d/dv
+    psi = torch.atan2(grad[1], grad[0])
+    _, _, cov = mask_moments(torch.as_tensor(mask, dtype=signed.dtype)[None])
+    theta = 0.5 * torch.atan2(2 * cov[0, 0, 1], cov[0, 0, 0] - cov[0, 1, 1])
+    return torch.cos(2 * (psi - theta))
 
-    A pixel's coverage after moving the outline by ``b`` pixels is ``clip(d - b + 1/2, 0, 1)``
-    with ``d`` its signed distance to the outline (Euclidean; positive inside, ±1/2 at the pixels
-    beside it), so ``b = 0`` gives the mask back, ``b > 0`` erodes and ``b < 0`` dilates.
+
+def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tensor = _EDGE_SHAPE_GRID) -> Tensor:
+    """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of the grids.
+
+    A pixel's coverage after moving the outline by ``b = b0 + b1 cos(2 phi)`` pixels is
+    ``clip(d - b + 1/2, 0, 1)`` with ``d`` its signed distance to the outline (Euclidean; positive
+    inside, ±1/2 at the pixels beside it) and ``phi`` the angle of the outline normal to the mask's
+    major axis (:func:`_axis_cosine`), so ``b = 0`` gives the mask back, ``b > 0`` erodes and
+    ``b < 0`` dilates.
 
     Returns:
-        (K, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin, K = len(grid).
+        (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
+        ``grid`` (K0) and ``b1`` in ``shape_grid`` (K1).
     """
-    out = torch.zeros(len(grid), len(masks), 6, dtype=torch.float64)
-    margin = int(math.ceil(float(grid.abs().max()))) + 2
+    out = torch.zeros(len(grid), len(shape_grid), len(masks), 6, dtype=torch.float64)
+    margin = int(math.ceil(float(grid.abs().max() + shape_grid.abs().max()))) + 2
     for t, mask in enumerate(masks):
         rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
         if not len(rows):
@@ -177,20 +200,25 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID) -> Tensor:
         y0, x0 = max(rows[0] - margin, 0), max(cols[0] - margin, 0)
         crop = mask[y0:rows[-1] + margin + 1, x0:cols[-1] + margin + 1]
         signed = torch.as_tensor(signed_distance(crop), dtype=torch.float64)
-        cover = (signed[None] - grid[:, None, None] + 0.5).clamp(0.0, 1.0)  # (K, h, w)
+        bias = grid[:, None, None, None] + shape_grid[None, :, None, None] * _axis_cosine(signed, crop)
         v, u = torch.meshgrid(torch.arange(crop.shape[0], dtype=torch.float64) + y0,
                               torch.arange(crop.shape[1], dtype=torch.float64) + x0, indexing="ij")
-        out[:, t] = torch.stack([(cover * w).sum((-2, -1)) for w in (1.0, u, v, u * u, u * v, v * v)], -1)
+        weights = torch.stack((torch.ones_like(u), u, v, u * u, u * v, v * v))  # (6, h, w)
+        for k in range(len(grid)):  # one b0 at a time: (K1, h, w) coverage
+            cover = (signed - bias[k] + 0.5).clamp(0.0, 1.0)
+            out[k, :, t] = torch.einsum("jhw,mhw->jm", cover, weights)
     return out
 
 
-def _moments_at(table: Tensor, bias: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Area (T,), centroid (T, 2), covariance (T, 2, 2) at ``bias`` pixels (linear in the table)."""
-    position = (min(max(bias, float(_EDGE_GRID[0])), float(_EDGE_GRID[-1])) - float(_EDGE_GRID[0])) \
-        / float(_EDGE_GRID[1] - _EDGE_GRID[0])
-    low = min(int(position), len(_EDGE_GRID) - 2)
-    frac = position - low
-    raw = (1 - frac) * table[low] + frac * table[low + 1]  # (T, 6)
+def _moments_at(table: Tensor, bias: tuple[float, float]) -> tuple[Tensor, Tensor, Tensor]:
+    """Area (T,), centroid (T, 2), covariance (T, 2, 2) at ``bias = (b0, b1)`` pixels (bilinear in
+    the (K0, K1, T, 6) table of :func:`_edge_moments`)."""
+    raw = table
+    for grid, value in ((_EDGE_GRID, bias[0]), (_EDGE_SHAPE_GRID, bias[1])):
+        position = (min(max(value, float(grid[0])), float(grid[-1])) - float(grid[0])) / float(grid[1] - grid[0])
+        low = min(int(position), len(grid) - 2)
+        frac = position - low
+        raw = (1 - frac) * raw[low] + frac * raw[low + 1]  # the first axis interpolated away
     area = raw[:, 0]
     safe = area.clamp(min=1e-12)
     cu, cv = raw[:, 1] / safe, raw[:, 2] / safe
@@ -228,11 +256,12 @@ def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarra
 @dataclass
 class _Model:
     """A fitted model: the candidate (B = 1), its effects' parameter values and the segmentation
-    edge bias (pixels the observed outline lies outside the true one; a nuisance)."""
+    edge bias ``(b0, b1)``: pixels the observed outline lies outside the true one, ``b0 + b1 cos(2
+    phi)`` with ``phi`` the outline normal's angle to the major axis (a nuisance)."""
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
-    edge: float = 0.0
+    edge: tuple[float, float] = (0.0, 0.0)
 
 
 class VideoProblem:
@@ -300,9 +329,9 @@ class VideoProblem:
             channels = self._channels(model.cands, self.effects(model.values), model.edge)
         return {k: v[0].cpu().numpy() for k, v in channels.items()}
 
-    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: float) -> dict:
+    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
-        observed outlines moved inward by ``edge`` pixels."""
+        observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
         frames, batch = len(self.problem.times), len(cands)
         cover = candidate_silhouettes(self.problem, cands, frames, self.crop, self.sigma, effects)
         windows = self.problem.windows(self.crop).repeat(batch, 1)
@@ -340,20 +369,23 @@ class VideoProblem:
 
     # -- Levenberg-Marquardt on the normalised channels ----------------------------------------
 
-    def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: float, mask: Tensor) -> Tensor:
-        """(B, N + 1) whitened residuals of the frames in ``mask`` (channel-major, see
-        :meth:`_whitened`), then the edge bias's prior term ``edge / EDGE_PRIOR_PX``."""
+    def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float],
+                mask: Tensor) -> Tensor:
+        """(B, N + 2) whitened residuals of the frames in ``mask`` (channel-major, see
+        :meth:`_whitened`), then the edge bias's prior terms ``(b0 / EDGE_PRIOR_PX, b1 /
+        EDGE_SHAPE_PRIOR_PX)``."""
         channels = self._channels(cands, effects, edge)
-        prior = torch.full((len(cands), 1), edge / EDGE_PRIOR_PX, dtype=channels[CHANNELS[0]].dtype,
-                           device=mask.device)
+        prior = torch.tensor(_edge_prior(edge), dtype=channels[CHANNELS[0]].dtype,
+                             device=mask.device).expand(len(cands), 2)
         frames = mask.cpu().numpy()
         return torch.cat([self._whitened(channels[c][:, mask], frames, c) for c in CHANNELS] + [prior], -1)
 
-    def _build(self, model: _Model, state: Tensor, extra: Tensor) -> tuple[Candidates, list[Effect], float]:
+    def _build(self, model: _Model, state: Tensor,
+               extra: Tensor) -> tuple[Candidates, list[Effect], tuple[float, float]]:
         """Candidates (B = len(state)), effects and edge bias at ``model`` moved by scaled steps.
 
-        ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + 1,) the effect parameters in
-        units of ``EFFECT_SCALES``, then the edge bias in units of ``EDGE_SCALE``.
+        ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + 2,) the effect parameters in
+        units of ``EFFECT_SCALES``, then the edge bias's two terms in units of ``EDGE_SCALE``.
         """
         fields, offset = {}, 0
         for name, scale in SCALES.items():
@@ -369,11 +401,12 @@ class VideoProblem:
                 step = extra[offset:offset + value.numel()].view_as(value) * EFFECT_SCALES.get(pname, 0.1)
                 values[name][pname] = value + step.cpu()
                 offset += value.numel()
-        return cands, self.effects(values), model.edge + EDGE_SCALE * float(extra[offset])
+        edge = tuple(b + EDGE_SCALE * float(step) for b, step in zip(model.edge, extra[offset:offset + 2]))
+        return cands, self.effects(values), edge
 
     def _extra_count(self, model: _Model) -> int:
-        """Free parameters besides the 14 of the state: the effects' and the edge bias."""
-        return 1 + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
+        """Free parameters besides the 14 of the state: the effects' and the edge bias's two."""
+        return 2 + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences;
@@ -442,9 +475,9 @@ class VideoProblem:
                 break
         return model, resid, jac
 
-    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, float]:
-        """Standard errors of the effect parameters and of the edge bias (pixels): Gauss-Newton at
-        the optimum, inflated by the reduced chi-squared when it exceeds 1."""
+    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float]]:
+        """Standard errors of the effect parameters and of the edge bias's two terms (pixels):
+        Gauss-Newton at the optimum, inflated by the reduced chi-squared when it exceeds 1."""
         good = torch.isfinite(resid)
         j, r = jac[good], resid[good]
         n, p = j.shape
@@ -458,7 +491,7 @@ class VideoProblem:
                 part = std[offset:offset + count] * EFFECT_SCALES.get(pname, 0.1)
                 offset += count
                 out.setdefault(name, {})[pname] = part.tolist() if count > 1 else float(part[0])
-        return out, float(std[offset]) * EDGE_SCALE
+        return out, (float(std[offset]) * EDGE_SCALE, float(std[offset + 1]) * EDGE_SCALE)
 
     def _describe(self, model: _Model, std: dict) -> dict:
         params = {}
@@ -473,7 +506,8 @@ class VideoProblem:
                 }
         return params
 
-    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, float], held_model: _Model) -> ModelFit:
+    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, float]],
+               held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
         whitened = self.whitened_channels(channels, used)
@@ -482,15 +516,17 @@ class VideoProblem:
         held_channels = self.residuals(held_model)
         held = self._normalised(held_channels, self.held)
         n_free = 14 + self._extra_count(model)
-        # the edge bias's prior counts as one more observation
-        rss = float(np.nansum(everything**2)) + (model.edge / EDGE_PRIOR_PX) ** 2
-        n_obs = int(np.isfinite(everything).sum()) + 1
+        # the edge bias's prior terms count as two more observations
+        rss = float(np.nansum(everything**2)) + sum(p * p for p in _edge_prior(model.edge))
+        n_obs = int(np.isfinite(everything).sum()) + 2
         centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
         held_centroid = np.hypot(held_channels["centroid_x"], held_channels["centroid_y"])
         return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std[0]), math.sqrt(rss / max(n_obs, 1)),
                         float(np.sqrt(np.nanmean(held**2))),
                         payload={"model": model, "held_model": held_model, "channels": channels,
-                                 "edge_px": {"value": model.edge, "std": std[1]},
+                                 "edge_px": {"value": model.edge[0], "std": std[1][0],
+                                             "ends_minus_sides": 2 * model.edge[1],
+                                             "ends_minus_sides_std": 2 * std[1][1]},
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -590,6 +626,11 @@ class VideoProblem:
             used = used & ~outliers
         self.noise = {name: float(np.hypot(noise_floor(channels[name][used], FRAME_CORRELATION), self.systematic[name]))
                       for name in CHANNELS}
+
+
+def _edge_prior(edge: tuple[float, float]) -> tuple[float, float]:
+    """The edge bias's two prior terms (standard units) of ``edge = (b0, b1)`` pixels."""
+    return edge[0] / EDGE_PRIOR_PX, edge[1] / EDGE_SHAPE_PRIOR_PX
 
 
 def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> np.ndarray:
@@ -791,7 +832,8 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
                  f"(noise floors: " + ", ".join(f"{k} {v:.2g}" for k, v in video.noise.items()) + ").")
     edge = final.payload["edge_px"]
     lines.append(f"Segmentation edge bias (a nuisance every model fits): {edge['value']:+.2f} ± {edge['std']:.2f} px "
-                 "(observed outline outside the true one when positive).")
+                 f"(observed outline outside the true one when positive), ends minus sides "
+                 f"{edge['ends_minus_sides']:+.2f} ± {edge['ends_minus_sides_std']:.2f} px.")
     frames = np.flatnonzero(video.problem.used.cpu().numpy())
     for step in selection.steps:
         for name, score in step.scores.items():
