@@ -240,3 +240,9 @@ def test_concealed_verdict_is_right_only_when_exactly_the_hidden_effects_are_nam
     assert conc._without_third(score) == 2.5
     table = conc.table([exact, extra, wrong])
     assert "| NO (also named com_offset) |" in table and table.count("| NO |") == 1
+    counts = conc.score([exact, extra, wrong, quiet, alarm])
+    assert counts["effect_right"] == [1, 3] and counts["controls_quiet"] == [1, 2]
+    assert counts["wrong_names"] == ["control_x", "drag_x", "drag_x"]
+    assert counts["heldout_halved"] == [1, 1]  # 2.0 -> 1.0 px
+    assert counts["coefficients_within_25pc"] == [1, 1]  # C_d 0.5 fitted, 0.5 true
+    assert "Right verdict on 1 of 3 effect cases; controls quiet 1 of 2" in conc.score_line(counts)

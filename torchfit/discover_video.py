@@ -12,8 +12,10 @@ of candidates) — the fit minimises the criterion it is judged by — once on a
 chi-squared and BIC) and once without the last ``holdout`` of them (the held-out prediction, where
 a missing force shows most). A model with one more effect starts from the model it extends with
 the new effect at its null value. Every model also fits the segmentation's edge bias (the observed
-outlines moved by ``b`` pixels along their normals, with a Gaussian prior of ``EDGE_PRIOR_PX``): a
-mask a fraction of a pixel too small otherwise reads as a depth, and with it a frame-rate error.
+outlines moved by ``b0 + b1 cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle to
+the silhouette's major axis, with Gaussian priors of ``EDGE_PRIOR_PX`` and ``EDGE_SHAPE_PRIOR_PX``):
+a mask a fraction of a pixel too small, or too fat and too short, otherwise reads as a depth, and
+with it a frame-rate error.
 Parameter uncertainties: Gauss-Newton at the optimum, inflated by the reduced chi-squared when it
 exceeds 1.
 """

@@ -130,6 +130,41 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+# The coefficients the issue asks to be within 25 % of the engine's
+COEFFICIENTS = ("drag_coefficient", "lift_coefficient")
+
+
+def score(rows: list[dict]) -> dict:
+    """The issue's targets counted over ``rows`` (:func:`row`): right verdicts on effect cases,
+    quiet controls, recordings with a name that is not hidden, held-out error at least halved
+    where the right effect was named, drag and lift coefficients within 25 % of the truth, and
+    concealment (baseline mean IoU >= 0.9 on the fitted frames)."""
+    effect = [r for r in rows if r["truth"]]
+    controls = [r for r in rows if not r["truth"]]
+    named = [r for r in effect if r["right"]]
+    coefficients = [(p, v["fitted"], v["true"]) for r in named for e in r["params"].values()
+                    for p, v in e.items() if p in COEFFICIENTS]
+    return {
+        "effect_right": [len(named), len(effect)],
+        "controls_quiet": [sum(r["right"] for r in controls), len(controls)],
+        "wrong_names": sorted(r["recording"] for r in rows if set(r["verdict"]) - set(r["truth"])),
+        "heldout_halved": [sum(r["heldout_px_after"] <= 0.5 * r["heldout_px_before"] for r in named), len(named)],
+        "coefficients_within_25pc": [sum(abs(f - t) <= 0.25 * abs(t) for _, f, t in coefficients), len(coefficients)],
+        "concealed": [sum(r["concealed"] for r in rows), len(rows)],
+    }
+
+
+def score_line(counts: dict) -> str:
+    """One line of the table's score (:func:`score`)."""
+    def part(pair):
+        return f"{pair[0]} of {pair[1]}"
+    return (f"Right verdict on {part(counts['effect_right'])} effect cases; controls quiet "
+            f"{part(counts['controls_quiet'])}; a name not hidden on "
+            f"{', '.join(counts['wrong_names']) or 'no recording'}; held-out error at least halved on "
+            f"{part(counts['heldout_halved'])} right names; drag and lift coefficients within 25 % on "
+            f"{part(counts['coefficients_within_25pc'])}; baseline IoU >= 0.9 on {part(counts['concealed'])}.")
+
+
 def _right(r: dict) -> str:
     """'yes', or 'NO' with what went wrong when the hidden effect was named with others."""
     if r["right"]:
@@ -148,7 +183,7 @@ def rebuild(out: Path = OUT, recordings: Path = RECORDINGS) -> str:
     """summary.json and table.md from every discover.json under ``out`` (no fitting: rows of other
     runs and earlier ones are read back the same way); returns the table."""
     rows = [row(f.parent.name, json.loads(f.read_text()), recordings) for f in sorted(out.glob("*/discover.json"))]
-    text = table(rows)
+    text = table(rows) + "\n\n" + score_line(score(rows))
     (out / "summary.json").write_text(json.dumps(rows, indent=1))
     (out / "table.md").write_text(text + "\n")
     return text
