@@ -204,10 +204,11 @@ def test_edge_bias_moves_the_outline_by_that_many_pixels():
 
 @pytest.mark.parametrize("angle", [0.0, 35.0, 45.0, 90.0])
 def test_edge_bias_second_term_moves_the_ends_against_the_sides(angle):
-    """b1 moves the outline by b1 cos(2 phi): inward at the ends of the long axis as b0 = b1 would,
-    outward on the sides as b0 = -b1 would, so a bar gets shorter and fatter whatever its angle.
-    (On a rotated pixel staircase the signed distance moves the outline by 0.8-0.95 of b: 0.95 of
-    1 px on this bar at 0 and 90 degrees, 0.79 at 45.)"""
+    """b1 moves the outline by b1 e cos(2 phi), e the silhouette's elongation: inward at the ends
+    of the long axis as b0 = e b1 would, outward on the sides as b0 = -e b1 would, so a bar gets
+    shorter and fatter whatever its angle; a disc (e = 0) does not change. (On a rotated pixel
+    staircase the signed distance moves the outline by 0.8-0.95 of b: 0.95 of 1 px on this bar at
+    0 and 90 degrees, 0.79 at 45.)"""
     from torchfit.discover_video import _edge_moments, _moments_at
 
     length, width = 90.0, 30.0
@@ -215,20 +216,26 @@ def test_edge_bias_second_term_moves_the_ends_against_the_sides(angle):
     c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
     along, across = (u - 100.2) * c + (v - 80.4) * s, -(u - 100.2) * s + (v - 80.4) * c
     bar = (np.abs(along) <= length / 2) & (np.abs(across) <= width / 2)
-    table = _edge_moments(bar[None])
+    disc = (u - 100.2) ** 2 + (v - 80.4) ** 2 <= 30.0**2
+    table = _edge_moments(np.stack([bar, disc]))
     axis, normal = torch.tensor([c, s], dtype=F64), torch.tensor([-s, c], dtype=F64)
+    elongation = (length**2 - width**2) / (length**2 + width**2)  # 0.8
 
-    def extents(bias):  # length and width of a uniform bar with these second moments
+    def extents(bias):  # the bar's length and width (a uniform bar's with these second moments)
         _, _, cov = _moments_at(table, bias)
         return np.array([float(torch.sqrt(12 * d @ cov[0] @ d)) for d in (axis, normal)])
 
     base = extents((0.0, 0.0))
+    base_disc = _moments_at(table, (0.0, 0.0))
     for b1 in (-0.5, 0.3, 0.5):
         moved = extents((0.0, b1)) - base
-        as_b0 = extents((b1, 0.0)) - base  # both ends and sides moved in by b1
+        as_b0 = extents((elongation * b1, 0.0)) - base  # both ends and sides moved in by e b1
         assert np.sign(moved[0]) == -np.sign(b1) and np.sign(moved[1]) == np.sign(b1)
         assert moved[0] == pytest.approx(as_b0[0], abs=0.15)
         assert moved[1] == pytest.approx(-as_b0[1], abs=0.15)
+        area, centre, cov = _moments_at(table, (0.0, b1))
+        assert float(area[1]) == pytest.approx(float(base_disc[0][1]), rel=2e-3)
+        torch.testing.assert_close(cov[1], base_disc[2][1], atol=0.05, rtol=0)
 
 
 @pytest.mark.parametrize("name, limit", [("cylinder", 0.001), ("tshape", 0.0025)])

@@ -12,8 +12,8 @@ of candidates) — the fit minimises the criterion it is judged by — once on a
 chi-squared and BIC) and once without the last ``holdout`` of them (the held-out prediction, where
 a missing force shows most). A model with one more effect starts from the model it extends with
 the new effect at its null value. Every model also fits the segmentation's edge bias (the observed
-outlines moved by ``b0 + b1 cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle to
-the silhouette's major axis, with Gaussian priors of ``EDGE_PRIOR_PX`` and ``EDGE_SHAPE_PRIOR_PX``):
+outlines moved by ``b0 + b1 e cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle
+to the silhouette's major axis and ``e`` its elongation, with Gaussian priors of ``EDGE_PRIOR_PX`` and ``EDGE_SHAPE_PRIOR_PX``):
 a mask a fraction of a pixel too small, or too fat and too short, otherwise reads as a depth, and
 with it a frame-rate error.
 Parameter uncertainties: Gauss-Newton at the optimum, inflated by the reduced chi-squared when it
@@ -150,13 +150,14 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
-# The nuisance's second term: the bias is b0 + b1 cos(2 phi), phi the angle between the outline
-# normal and the silhouette's major axis (b1 > 0: the ends move in more than the sides, a shorter
-# and fatter outline). Measured against the true masks (edge_bias.py --by-normal, ends minus sides,
+# The nuisance's second term: the bias is b0 + b1 e cos(2 phi), phi the angle between the outline
+# normal and the silhouette's major axis, e its elongation (see _axis_cosine) (b1 < 0: the observed outline lies further outside the
+# true one on the sides than at the ends, a fatter and shorter silhouette). Measured against the true masks (edge_bias.py --by-normal, ends minus sides,
 # which is 2 b1): -0.20 and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14
 # on control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter
 # through a false clock of 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
 EDGE_SHAPE_PRIOR_PX = 0.15
+EDGE_FORM = "b0 + b1 e cos(2 phi)"  # stored in discover.json's edge_px: which nuisance a run fitted
 _EDGE_SHAPE_GRID = torch.linspace(-0.6, 0.6, 13, dtype=torch.float64)  # b1 tabulated, pixels
 
 
@@ -170,23 +171,30 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
 
 
 def _axis_cosine(signed: Tensor, mask: np.ndarray) -> Tensor:
-    """(h, w) cos(2 phi) of each pixel: phi the angle between the outline normal there (the gradient
-    of the Gaussian-blurred (h, w) signed distance) and the major axis of the (h, w) bool mask."""
+    """(h, w) ``e cos(2 phi)`` of each pixel: ``phi`` the angle between the outline normal there (the
+    gradient of the Gaussian-blurred (h, w) signed distance) and the major axis of the (h, w) bool
+    mask, ``e = (l1 - l2) / (l1 + l2)`` the mask's elongation from its covariance's eigenvalues.
+
+    ``e`` makes the term vanish where the axis is undefined: a ball's major axis is wherever the
+    segmentation noise stretched it, and an unweighted term fitted that noise (on fresh set 1's
+    drag_light_ball, ends minus sides +0.55 ± 0.01 px). Closed form: ``((c_uu - c_vv) cos 2 psi +
+    2 c_uv sin 2 psi) / (c_uu + c_vv)`` with ``psi`` the normal's angle to the image's u axis.
+    """
     blurred = kornia.filters.gaussian_blur2d(signed[None, None], (7, 7), (1.5, 1.5), border_type="replicate")
     grad = kornia.filters.spatial_gradient(blurred, normalized=False)[0, 0]  # (2, h, w): d/du, d/dv
     psi = torch.atan2(grad[1], grad[0])
     _, _, cov = mask_moments(torch.as_tensor(mask, dtype=signed.dtype)[None])
-    theta = 0.5 * torch.atan2(2 * cov[0, 0, 1], cov[0, 0, 0] - cov[0, 1, 1])
-    return torch.cos(2 * (psi - theta))
+    cuu, cuv, cvv = cov[0, 0, 0], cov[0, 0, 1], cov[0, 1, 1]
+    return ((cuu - cvv) * torch.cos(2 * psi) + 2 * cuv * torch.sin(2 * psi)) / (cuu + cvv)
 
 
 def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tensor = _EDGE_SHAPE_GRID) -> Tensor:
     """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of the grids.
 
-    A pixel's coverage after moving the outline by ``b = b0 + b1 cos(2 phi)`` pixels is
+    A pixel's coverage after moving the outline by ``b = b0 + b1 e cos(2 phi)`` pixels is
     ``clip(d - b + 1/2, 0, 1)`` with ``d`` its signed distance to the outline (Euclidean; positive
-    inside, ±1/2 at the pixels beside it) and ``phi`` the angle of the outline normal to the mask's
-    major axis (:func:`_axis_cosine`), so ``b = 0`` gives the mask back, ``b > 0`` erodes and
+    inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the mask's
+    major axis and ``e`` the mask's elongation (:func:`_axis_cosine`), so ``b = 0`` gives the mask back, ``b > 0`` erodes and
     ``b < 0`` dilates.
 
     Returns:
@@ -258,8 +266,9 @@ def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarra
 @dataclass
 class _Model:
     """A fitted model: the candidate (B = 1), its effects' parameter values and the segmentation
-    edge bias ``(b0, b1)``: pixels the observed outline lies outside the true one, ``b0 + b1 cos(2
-    phi)`` with ``phi`` the outline normal's angle to the major axis (a nuisance)."""
+    edge bias ``(b0, b1)``: pixels the observed outline lies outside the true one, ``b0 + b1 e cos(2
+    phi)`` with ``phi`` the outline normal's angle to the major axis and ``e`` the silhouette's
+    elongation (a nuisance, :func:`_axis_cosine`)."""
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
@@ -528,7 +537,7 @@ class VideoProblem:
                         payload={"model": model, "held_model": held_model, "channels": channels,
                                  "edge_px": {"value": model.edge[0], "std": std[1][0],
                                              "ends_minus_sides": 2 * model.edge[1],
-                                             "ends_minus_sides_std": 2 * std[1][1]},
+                                             "ends_minus_sides_std": 2 * std[1][1], "form": EDGE_FORM},
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},

@@ -35,7 +35,12 @@ from true_masks import load_problem
 import torchfit
 from torchfit.camera import Camera
 from torchfit.discover import without_weakest_block
-from torchfit.discover_video import DEFAULT_CANDIDATES, VIDEO_SELECTION, discover_video
+from torchfit.discover_video import (
+    DEFAULT_CANDIDATES,
+    EDGE_FORM,
+    VIDEO_SELECTION,
+    discover_video,
+)
 from torchfit.effects import EFFECTS
 from torchfit.shape import load_shape
 
@@ -87,10 +92,10 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
     top_bic, top, top_thirds = max(first_round, key=lambda c: c[0]) if first_round else (float("nan"), "", None)
     # run with the evidence-thirds rule (each score then carries its ΔBIC without its weakest third)
     thirds = any("delta_bic_without_block" in s for scores in content["effects"].values() for s in scores)
-    # run with the two-term edge nuisance (b0 + b1 cos 2 phi), which stores the ends-minus-sides term
-    two_term = "ends_minus_sides" in last.get("edge_px", {})
+    # run with today's edge nuisance (discover.json names its form; earlier runs did not)
+    current_edge = last.get("edge_px", {}).get("form") == EDGE_FORM
     return {"recording": name, "truth": truth, "verdict": verdict, "top_delta_bic": [top, top_bic, top_thirds],
-            "thirds_rule": thirds, "edge_two_term": two_term, "indistinguishable": content["indistinguishable"],
+            "thirds_rule": thirds, "current_edge": current_edge, "indistinguishable": content["indistinguishable"],
             "truth_effects": content.get("truth_effects", {}), "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits, "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
@@ -125,8 +130,8 @@ def table(rows: list[dict]) -> str:
             verdict = f"withheld (poor fit): {', '.join(r['verdict_withheld'])}"
         top, top_bic, top_thirds = r["top_delta_bic"]
         without = f" ({top_thirds:.1f})" if top_thirds is not None else ""
-        # run before the thirds rule (†), or with the one-term edge nuisance (‡)
-        mark = ("" if r.get("thirds_rule") else " †") + ("" if r.get("edge_two_term") else " ‡")
+        # run before the thirds rule (†), or with an earlier edge nuisance than EDGE_FORM (‡)
+        mark = ("" if r.get("thirds_rule") else " †") + ("" if r.get("current_edge") else " ‡")
         lines.append(f"| {r['recording']}{mark} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{_right(r)} | {r['iou_baseline']['mean_fitted']:.3f} / "
                      f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "

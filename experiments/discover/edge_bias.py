@@ -8,8 +8,9 @@ true perimeter, averaged over the used frames. It is what discover's edge-bias n
 `--by-normal` splits the bias by the direction of the outline: on the silhouette's long sides
 (outline normal within 24 degrees of the minor axis) and at its ends (within 37 degrees of the
 major axis), on the control and clock recordings of the first set and of fresh set 1
-(`make_concealed.py --fresh 1`), and as ``b0 + b1 cos(2 phi)`` (phi the normal's angle to the
-major axis), the form of discover's two-term edge nuisance, beside what discover fitted there.
+(`make_concealed.py --fresh 1`), and as ``b0 + b1 e cos(2 phi)`` (phi the normal's angle to the
+major axis, e the silhouette's elongation), the form of discover's two-term edge nuisance, beside
+what discover fitted there.
 A single scalar bias cannot make a silhouette fatter and shorter at once; the second term can.
 
     python experiments/discover/edge_bias.py --by-normal   # ~3 min; writes results/edge_bias_by_normal.json
@@ -23,7 +24,7 @@ import cv2
 import numpy as np
 from make_concealed import fresh_folder
 
-from torchfit.discover_video import signed_distance
+from torchfit.discover_video import EDGE_FORM, signed_distance
 from torchfit.video import Observation, load_observation
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -55,7 +56,8 @@ def edge_bias_by_normal(folder: Path) -> dict:
     """Mean bias (pixels, segmented outline outside the true one when positive) over the true
     outline's pixels, by |cos| of the angle between the outline normal and the major axis:
     ``sides`` [0, 0.4), ``oblique`` [0.4, 0.8) (mostly corners), ``ends`` [0.8, 1]; and ``b0``,
-    ``b1``: the least-squares fit of ``b0 + b1 cos(2 phi)`` to the bias of those pixels, the form
+    ``b1``: the least-squares fit of ``b0 + b1 e cos(2 phi)`` to the bias of those pixels (``e``
+    the true mask's elongation, ``(l1 - l2) / (l1 + l2)`` of its covariance's eigenvalues), the form
     of discover's edge nuisance (its ``edge_px``: value ``b0``, ends_minus_sides ``2 b1``)."""
     observation, truth = _load(folder)
     parts: dict = {"sides": [], "oblique": [], "ends": []}
@@ -64,14 +66,16 @@ def edge_bias_by_normal(folder: Path) -> dict:
         true_signed = signed_distance(truth[t])
         gy, gx = np.gradient(cv2.GaussianBlur(true_signed, (5, 5), 1.0))
         ys, xs = np.nonzero(truth[t])
-        major = np.linalg.eigh(np.cov(np.stack([xs, ys]).astype(float)))[1][:, 1]
+        eigenvalues, eigenvectors = np.linalg.eigh(np.cov(np.stack([xs, ys]).astype(float)))
+        major = eigenvectors[:, 1]
+        elongation = (eigenvalues[1] - eigenvalues[0]) / (eigenvalues[1] + eigenvalues[0])
         edge = np.abs(true_signed) < 0.6  # the pixels beside the true outline, either side
         normal = np.stack([gx[edge], gy[edge]], -1)
         cos = np.abs(normal @ major) / (np.linalg.norm(normal, axis=1) + 1e-9)
         bias = signed_distance(observation.masks[t])[edge] - true_signed[edge]
         for (name, values), (lo, hi) in zip(parts.items(), [(0, 0.4), (0.4, 0.8), (0.8, 1.01)]):
             values.append(bias[(cos >= lo) & (cos < hi)])
-        cos2.append(2 * cos**2 - 1)
+        cos2.append(elongation * (2 * cos**2 - 1))
         biases.append(bias)
     cos2 = np.concatenate(cos2)
     (b0, b1), *_ = np.linalg.lstsq(np.stack([np.ones_like(cos2), cos2], -1), np.concatenate(biases), rcond=None)
@@ -82,13 +86,13 @@ def edge_bias_by_normal(folder: Path) -> dict:
 def fitted_edge(base: Path, name: str) -> dict:
     """The edge nuisance discover fitted on the segmented recording (``fitted_b0``, ``fitted_b1``,
     pixels; its final model in results/concealed[_fresh<K>]/<name>/discover.json), where a run
-    with the two-term nuisance stored it."""
+    with today's nuisance (``EDGE_FORM``) stored it."""
     suffix = base.name.removeprefix("recordings")  # "" or "_fresh<K>"
     path = Path(__file__).resolve().parent / "results" / f"concealed{suffix}" / name / "discover.json"
     if not path.exists():
         return {}
     edge = json.loads(path.read_text())["models"][-1]["edge_px"]
-    if "ends_minus_sides" not in edge:
+    if edge.get("form") != EDGE_FORM:
         return {}
     return {"fitted_b0": edge["value"], "fitted_b1": edge["ends_minus_sides"] / 2}
 
