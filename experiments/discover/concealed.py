@@ -6,6 +6,7 @@
     python experiments/discover/concealed.py --true-masks [names...] # MuJoCo's true masks instead
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
     python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
+    python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
 experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -99,7 +101,7 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
             "truth_effects": content.get("truth_effects", {}), "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits, "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
-            "params": params, "seconds": content["seconds"]}
+            "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {})}
 
 
 def _without_third(score: dict) -> float | None:
@@ -198,8 +200,36 @@ def rebuild(out: Path = OUT, recordings: Path = RECORDINGS) -> str:
     return text
 
 
+def compare(out: Path, revision: str) -> str:
+    """Markdown rows of each recording rerun with today's edge nuisance (``EDGE_FORM``) against its
+    row in ``out``'s summary.json at git ``revision``: verdict, round one's strongest candidate,
+    held-out error after, and the fitted edge terms."""
+    root = HERE.parents[1]
+    path = (out / "summary.json").relative_to(root).as_posix()
+    before = {r["recording"]: r for r in json.loads(subprocess.check_output(["git", "show", f"{revision}:{path}"],
+                                                                            cwd=root))}
+    lines = ["| recording | verdict before -> now | right | strongest, round one (without weakest third) "
+             "| held-out px after | edge b0, ends minus sides (px) |", "|---|---|---|---|---|---|"]
+    for r in json.loads((out / "summary.json").read_text()):
+        old = before.get(r["recording"])
+        if not r.get("current_edge") or old is None:
+            continue
+        def verdict(x):
+            return ", ".join(x["verdict"]) or ("indistinguishable" if x["indistinguishable"] else "none")
+
+        def top(x):
+            name, bic, third = x["top_delta_bic"]
+            return f"{name} {bic:.1f}" + (f" ({third:.1f})" if third is not None else "")
+        edge = r["edge_px"]
+        lines.append(f"| {r['recording']} | {verdict(old)} -> {verdict(r)} | {_right(old)} -> {_right(r)} | "
+                     f"{top(old)} -> {top(r)} | {old['heldout_px_after']:.2f} -> {r['heldout_px_after']:.2f} | "
+                     f"{edge['value']:+.2f} ± {edge['std']:.2f}, {edge['ends_minus_sides']:+.2f} ± "
+                     f"{edge['ends_minus_sides_std']:.2f} |")
+    return "\n".join(lines)
+
+
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
-         table_only: bool = False) -> None:
+         table_only: bool = False, against: str | None = None) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
     if shipped:
         out = OUT.with_name("shipped")
@@ -207,6 +237,9 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else ""))
     if table_only:
         return print(rebuild(out, recordings))
+    if against:
+        rebuild(out, recordings)
+        return print(compare(out, against))
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
     elif not recordings.exists():
@@ -231,7 +264,8 @@ if __name__ == "__main__":
     ap.add_argument("--true-masks", action="store_true", help="MuJoCo's true masks instead of the segmentation")
     ap.add_argument("--shipped", action="store_true", help="the shipped recordings (hide nothing)")
     ap.add_argument("--fresh", type=int, default=0, metavar="K", help="fresh set K (make_concealed.py --fresh K)")
+    ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     args = ap.parse_args()
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
-    main(args.names, args.true_masks, args.shipped, args.fresh, args.table)
+    main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare)
