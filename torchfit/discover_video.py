@@ -13,9 +13,9 @@ chi-squared and BIC) and once without the last ``holdout`` of them (the held-out
 a missing force shows most). A model with one more effect starts from the model it extends with
 the new effect at its null value. Every model also fits the segmentation's edge bias (the observed
 outlines moved by ``b0 + b1 e cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle
-to the silhouette's major axis and ``e`` its elongation, with Gaussian priors of ``EDGE_PRIOR_PX`` and ``EDGE_SHAPE_PRIOR_PX``):
-a mask a fraction of a pixel too small, or too fat and too short, otherwise reads as a depth, and
-with it a frame-rate error.
+to the silhouette's major axis and ``e`` its elongation, with Gaussian priors of ``EDGE_PRIOR_PX``
+and ``EDGE_SHAPE_PRIOR_PX``): a mask a fraction of a pixel too small, or too fat and too short,
+otherwise reads as a depth, and with it a frame-rate error.
 Parameter uncertainties: Gauss-Newton at the optimum, inflated by the reduced chi-squared when it
 exceeds 1.
 """
@@ -151,11 +151,12 @@ EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 # The nuisance's second term: the bias is b0 + b1 e cos(2 phi), phi the angle between the outline
-# normal and the silhouette's major axis, e its elongation (see _axis_cosine) (b1 < 0: the observed outline lies further outside the
-# true one on the sides than at the ends, a fatter and shorter silhouette). Measured against the true masks (edge_bias.py --by-normal, ends minus sides,
-# which is 2 b1): -0.20 and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14
-# on control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter
-# through a false clock of 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
+# normal and the silhouette's major axis, e its elongation (see _axis_cosine). b1 < 0: the observed
+# outline lies further outside the true one on the sides than at the ends (a fatter and shorter
+# silhouette). Measured against the true masks (edge_bias.py --by-normal, ends minus sides): -0.20
+# and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14 on control_tshape; a
+# single b made the fresh control_cylinder's outline fatter-and-shorter through a false clock of
+# 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
 EDGE_SHAPE_PRIOR_PX = 0.15
 EDGE_FORM = "b0 + b1 e cos(2 phi)"  # stored in discover.json's edge_px: which nuisance a run fitted
 _EDGE_SHAPE_GRID = torch.linspace(-0.6, 0.6, 13, dtype=torch.float64)  # b1 tabulated, pixels
@@ -194,8 +195,8 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tens
     A pixel's coverage after moving the outline by ``b = b0 + b1 e cos(2 phi)`` pixels is
     ``clip(d - b + 1/2, 0, 1)`` with ``d`` its signed distance to the outline (Euclidean; positive
     inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the mask's
-    major axis and ``e`` the mask's elongation (:func:`_axis_cosine`), so ``b = 0`` gives the mask back, ``b > 0`` erodes and
-    ``b < 0`` dilates.
+    major axis and ``e`` the mask's elongation (:func:`_axis_cosine`), so ``b = 0`` gives the mask
+    back, ``b > 0`` erodes and ``b < 0`` dilates.
 
     Returns:
         (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
