@@ -98,7 +98,9 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
     current_edge = last.get("edge_px", {}).get("form") == EDGE_FORM
     return {"recording": name, "truth": truth, "verdict": verdict, "top_delta_bic": [top, top_bic, top_thirds],
             "thirds_rule": thirds, "current_edge": current_edge, "indistinguishable": content["indistinguishable"],
-            "truth_effects": content.get("truth_effects", {}), "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits, "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
+            "truth_effects": content.get("truth_effects", {}),
+            "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits,
+            "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
             "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {})}
