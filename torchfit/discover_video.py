@@ -151,12 +151,12 @@ EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 # The nuisance's second term: the bias is b0 + b1 e cos(2 phi), phi the angle between the outline
-# normal and the silhouette's major axis, e its elongation (see _axis_cosine). b1 < 0: the observed
-# outline lies further outside the true one on the sides than at the ends (a fatter and shorter
-# silhouette). Measured against the true masks (edge_bias.py --by-normal, ends minus sides): -0.20
-# and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14 on control_tshape; a
-# single b made the fresh control_cylinder's outline fatter-and-shorter through a false clock of
-# 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
+# normal and the silhouette's major axis, e its elongation (see normal_axis_angle). b1 < 0: the
+# observed outline lies further outside the true one on the sides than at the ends (a fatter and
+# shorter silhouette). Measured against the true masks (edge_bias.py --by-normal, ends minus
+# sides): -0.20 and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14 on
+# control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter through a
+# false clock of 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
 EDGE_SHAPE_PRIOR_PX = 0.15
 EDGE_FORM = "b0 + b1 e cos(2 phi)"  # stored in discover.json's edge_px: which nuisance a run fitted
 _EDGE_SHAPE_GRID = torch.linspace(-0.6, 0.6, 13, dtype=torch.float64)  # b1 tabulated, pixels
@@ -171,22 +171,26 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
     return np.where(mask, inside - 0.5, 0.5 - outside).astype(np.float32)
 
 
-def _axis_cosine(signed: Tensor, mask: np.ndarray) -> Tensor:
-    """(h, w) ``e cos(2 phi)`` of each pixel: ``phi`` the angle between the outline normal there (the
-    gradient of the Gaussian-blurred (h, w) signed distance) and the major axis of the (h, w) bool
-    mask, ``e = (l1 - l2) / (l1 + l2)`` the mask's elongation from its covariance's eigenvalues.
+def normal_axis_angle(signed: Tensor, mask: np.ndarray) -> tuple[Tensor, float]:
+    """``cos(2 phi)`` (h, w) of each pixel and the mask's elongation ``e``: ``phi`` the angle between
+    the outline normal there (the gradient of the Gaussian-blurred (h, w) signed distance) and the
+    major axis of the (h, w) bool mask, ``e = (l1 - l2) / (l1 + l2)`` from its covariance's
+    eigenvalues. The edge nuisance's second term moves the outline by ``b1 e cos(2 phi)``.
 
-    ``e`` makes the term vanish where the axis is undefined: a ball's major axis is wherever the
+    ``e`` makes that term vanish where the axis is undefined: a ball's major axis is wherever the
     segmentation noise stretched it, and an unweighted term fitted that noise (on fresh set 1's
-    drag_light_ball, ends minus sides +0.55 ± 0.01 px). Closed form: ``((c_uu - c_vv) cos 2 psi +
-    2 c_uv sin 2 psi) / (c_uu + c_vv)`` with ``psi`` the normal's angle to the image's u axis.
+    drag_light_ball, ends minus sides +0.55 ± 0.01 px). Closed form: ``e cos(2 phi) = ((c_uu -
+    c_vv) cos 2 psi + 2 c_uv sin 2 psi) / (c_uu + c_vv)`` with ``psi`` the normal's angle to the
+    image's u axis.
     """
     blurred = kornia.filters.gaussian_blur2d(signed[None, None], (7, 7), (1.5, 1.5), border_type="replicate")
     grad = kornia.filters.spatial_gradient(blurred, normalized=False)[0, 0]  # (2, h, w): d/du, d/dv
     psi = torch.atan2(grad[1], grad[0])
     _, _, cov = mask_moments(torch.as_tensor(mask, dtype=signed.dtype)[None])
     cuu, cuv, cvv = cov[0, 0, 0], cov[0, 0, 1], cov[0, 1, 1]
-    return ((cuu - cvv) * torch.cos(2 * psi) + 2 * cuv * torch.sin(2 * psi)) / (cuu + cvv)
+    spread = torch.hypot(cuu - cvv, 2 * cuv)  # l1 - l2
+    cos2 = ((cuu - cvv) * torch.cos(2 * psi) + 2 * cuv * torch.sin(2 * psi)) / spread.clamp(min=1e-12)
+    return cos2, float(spread / (cuu + cvv))
 
 
 def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tensor = _EDGE_SHAPE_GRID) -> Tensor:
@@ -195,8 +199,8 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tens
     A pixel's coverage after moving the outline by ``b = b0 + b1 e cos(2 phi)`` pixels is
     ``clip(d - b + 1/2, 0, 1)`` with ``d`` its signed distance to the outline (Euclidean; positive
     inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the mask's
-    major axis and ``e`` the mask's elongation (:func:`_axis_cosine`), so ``b = 0`` gives the mask
-    back, ``b > 0`` erodes and ``b < 0`` dilates.
+    major axis and ``e`` the mask's elongation (:func:`normal_axis_angle`), so ``b = 0`` gives the
+    mask back, ``b > 0`` erodes and ``b < 0`` dilates.
 
     Returns:
         (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
@@ -211,7 +215,8 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tens
         y0, x0 = max(rows[0] - margin, 0), max(cols[0] - margin, 0)
         crop = mask[y0:rows[-1] + margin + 1, x0:cols[-1] + margin + 1]
         signed = torch.as_tensor(signed_distance(crop), dtype=torch.float64)
-        bias = grid[:, None, None, None] + shape_grid[None, :, None, None] * _axis_cosine(signed, crop)
+        cos2, elongation = normal_axis_angle(signed, crop)
+        bias = grid[:, None, None, None] + shape_grid[None, :, None, None] * (elongation * cos2)
         v, u = torch.meshgrid(torch.arange(crop.shape[0], dtype=torch.float64) + y0,
                               torch.arange(crop.shape[1], dtype=torch.float64) + x0, indexing="ij")
         weights = torch.stack((torch.ones_like(u), u, v, u * u, u * v, v * v))  # (6, h, w)
@@ -269,7 +274,7 @@ class _Model:
     """A fitted model: the candidate (B = 1), its effects' parameter values and the segmentation
     edge bias ``(b0, b1)``: pixels the observed outline lies outside the true one, ``b0 + b1 e cos(2
     phi)`` with ``phi`` the outline normal's angle to the major axis and ``e`` the silhouette's
-    elongation (a nuisance, :func:`_axis_cosine`)."""
+    elongation (a nuisance, :func:`normal_axis_angle`)."""
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}

@@ -94,10 +94,8 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
     top_bic, top, top_thirds = max(first_round, key=lambda c: c[0]) if first_round else (float("nan"), "", None)
     # run with the evidence-thirds rule (each score then carries its ΔBIC without its weakest third)
     thirds = any("delta_bic_without_block" in s for scores in content["effects"].values() for s in scores)
-    # run with today's edge nuisance (discover.json names its form; earlier runs did not)
-    current_edge = last.get("edge_px", {}).get("form") == EDGE_FORM
     return {"recording": name, "truth": truth, "verdict": verdict, "top_delta_bic": [top, top_bic, top_thirds],
-            "thirds_rule": thirds, "current_edge": current_edge, "indistinguishable": content["indistinguishable"],
+            "thirds_rule": thirds, "indistinguishable": content["indistinguishable"],
             "truth_effects": content.get("truth_effects", {}),
             "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits,
             "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
@@ -135,7 +133,7 @@ def table(rows: list[dict]) -> str:
         top, top_bic, top_thirds = r["top_delta_bic"]
         without = f" ({top_thirds:.1f})" if top_thirds is not None else ""
         # run before the thirds rule (†), or with an earlier edge nuisance than EDGE_FORM (‡)
-        mark = ("" if r.get("thirds_rule") else " †") + ("" if r.get("current_edge") else " ‡")
+        mark = ("" if r.get("thirds_rule") else " †") + ("" if _current_edge(r) else " ‡")
         lines.append(f"| {r['recording']}{mark} | {', '.join(r['truth']) or 'nothing'} | {verdict} | "
                      f"{_right(r)} | {r['iou_baseline']['mean_fitted']:.3f} / "
                      f"{r['iou_baseline']['mean_heldout']:.3f} | {r['heldout_px_before']:.2f} -> "
@@ -178,6 +176,20 @@ def score_line(counts: dict) -> str:
             f"{part(counts['coefficients_within_25pc'])}; baseline IoU >= 0.9 on {part(counts['concealed'])}.")
 
 
+def _current_edge(r: dict) -> bool:
+    """Whether the row ran with today's edge nuisance (discover.json names its form; earlier runs did not)."""
+    return r.get("edge_px", {}).get("form") == EDGE_FORM
+
+
+def _verdict(r: dict) -> str:
+    return ", ".join(r["verdict"]) or ("indistinguishable" if r["indistinguishable"] else "none")
+
+
+def _strongest(r: dict) -> str:
+    name, bic, third = r["top_delta_bic"]
+    return f"{name} {bic:.1f}" + (f" ({third:.1f})" if third is not None else "")
+
+
 def _right(r: dict) -> str:
     """'yes', or 'NO' with what went wrong when the hidden effect was named with others."""
     if r["right"]:
@@ -214,17 +226,11 @@ def compare(out: Path, revision: str) -> str:
              "| held-out px after | edge b0, ends minus sides (px) |", "|---|---|---|---|---|---|"]
     for r in json.loads((out / "summary.json").read_text()):
         old = before.get(r["recording"])
-        if not r.get("current_edge") or old is None:
+        if not _current_edge(r) or old is None:
             continue
-        def verdict(x):
-            return ", ".join(x["verdict"]) or ("indistinguishable" if x["indistinguishable"] else "none")
-
-        def top(x):
-            name, bic, third = x["top_delta_bic"]
-            return f"{name} {bic:.1f}" + (f" ({third:.1f})" if third is not None else "")
         edge = r["edge_px"]
-        lines.append(f"| {r['recording']} | {verdict(old)} -> {verdict(r)} | {_right(old)} -> {_right(r)} | "
-                     f"{top(old)} -> {top(r)} | {old['heldout_px_after']:.2f} -> {r['heldout_px_after']:.2f} | "
+        lines.append(f"| {r['recording']} | {_verdict(old)} -> {_verdict(r)} | {_right(old)} -> {_right(r)} | "
+                     f"{_strongest(old)} -> {_strongest(r)} | {old['heldout_px_after']:.2f} -> {r['heldout_px_after']:.2f} | "
                      f"{edge['value']:+.2f} ± {edge['std']:.2f}, {edge['ends_minus_sides']:+.2f} ± "
                      f"{edge['ends_minus_sides_std']:.2f} |")
     return "\n".join(lines)

@@ -20,11 +20,11 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
+import torch
 from make_concealed import fresh_folder
 
-from torchfit.discover_video import EDGE_FORM, signed_distance
+from torchfit.discover_video import EDGE_FORM, normal_axis_angle, signed_distance
 from torchfit.video import Observation, load_observation
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -64,18 +64,14 @@ def edge_bias_by_normal(folder: Path) -> dict:
     cos2, biases = [], []
     for t in np.flatnonzero(observation.used):
         true_signed = signed_distance(truth[t])
-        gy, gx = np.gradient(cv2.GaussianBlur(true_signed, (5, 5), 1.0))
-        ys, xs = np.nonzero(truth[t])
-        eigenvalues, eigenvectors = np.linalg.eigh(np.cov(np.stack([xs, ys]).astype(float)))
-        major = eigenvectors[:, 1]
-        elongation = (eigenvalues[1] - eigenvalues[0]) / (eigenvalues[1] + eigenvalues[0])
+        cos2_phi, elongation = normal_axis_angle(torch.as_tensor(true_signed, dtype=torch.float64), truth[t])
         edge = np.abs(true_signed) < 0.6  # the pixels beside the true outline, either side
-        normal = np.stack([gx[edge], gy[edge]], -1)
-        cos = np.abs(normal @ major) / (np.linalg.norm(normal, axis=1) + 1e-9)
+        cos2_phi = cos2_phi.numpy()[edge]
+        cos = np.sqrt(np.clip(0.5 * (1 + cos2_phi), 0, 1))  # |cos phi|
         bias = signed_distance(observation.masks[t])[edge] - true_signed[edge]
         for (name, values), (lo, hi) in zip(parts.items(), [(0, 0.4), (0.4, 0.8), (0.8, 1.01)]):
             values.append(bias[(cos >= lo) & (cos < hi)])
-        cos2.append(elongation * (2 * cos**2 - 1))
+        cos2.append(elongation * cos2_phi)
         biases.append(bias)
     cos2 = np.concatenate(cos2)
     (b0, b1), *_ = np.linalg.lstsq(np.stack([np.ones_like(cos2), cos2], -1), np.concatenate(biases), rcond=None)
