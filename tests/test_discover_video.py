@@ -238,6 +238,32 @@ def test_edge_bias_second_term_moves_the_ends_against_the_sides(angle):
         torch.testing.assert_close(cov[1], base_disc[2][1], atol=0.05, rtol=0)
 
 
+def test_edge_bias_second_term_follows_the_axes_it_is_given():
+    """The second term's axis and elongation are the ones passed in (discover passes its fitted
+    silhouette's), not the mask's own: a round mask stretched by a bump of segmentation noise
+    keeps its shape under b1 when given a circle's axes, where with its own axes b1 shrinks its
+    elongation (what made the term fit noise on the balls); given a bar's axes, a disc gets
+    shorter along that bar."""
+    from torchfit.discover_video import _edge_moments, _moments_at
+
+    v, u = np.mgrid[:120, :160].astype(float)
+    disc = (u - 80.3) ** 2 + (v - 60.7) ** 2 <= 25.0**2
+    bumped = disc | ((u - 106.0) ** 2 + (v - 60.7) ** 2 <= 4.0**2)  # noise stretched it along u
+    circle = torch.eye(2, dtype=F64).expand(2, 2, 2)
+    bar = torch.tensor([[100.0, 0.0], [0.0, 10.0]], dtype=F64)  # major axis along u, e = 9 / 11
+
+    def spread(table, b1, k=0):  # c_uu - c_vv of mask k
+        cov = _moments_at(table, (0.0, b1))[2][k]
+        return float(cov[0, 0] - cov[1, 1])
+
+    own, given = _edge_moments(bumped[None]), _edge_moments(bumped[None], circle[:1])
+    assert spread(own, 0.5) < spread(own, 0.0) - 0.2  # its own axes: the noise's stretch shrinks (by 0.34)
+    assert spread(given, 0.5) == pytest.approx(spread(given, 0.0), abs=0.01)  # a circle's: unchanged
+    table = _edge_moments(np.stack([disc, disc]), torch.stack([bar, torch.eye(2, dtype=F64)]))
+    assert spread(table, 0.5) < spread(table, 0.0) - 2.0  # shorter along u, fatter along v
+    assert spread(table, 0.5, k=1) == pytest.approx(spread(table, 0.0, k=1), abs=0.05)
+
+
 @pytest.mark.parametrize("name, limit", [("cylinder", 0.001), ("tshape", 0.0025)])
 def test_refit_render_has_no_size_bias_at_the_true_poses(name, limit):
     # The sigmoid edge overshoots at convex corners; at the search's coarse (64, 0.5) that made the

@@ -13,7 +13,7 @@ chi-squared and BIC) and once without the last ``holdout`` of them (the held-out
 a missing force shows most). A model with one more effect starts from the model it extends with
 the new effect at its null value. Every model also fits the segmentation's edge bias (the observed
 outlines moved by ``b0 + b1 e cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle
-to the silhouette's major axis and ``e`` its elongation, with Gaussian priors of ``EDGE_PRIOR_PX``
+to the baseline's fitted silhouette's major axis and ``e`` its elongation, with Gaussian priors of ``EDGE_PRIOR_PX``
 and ``EDGE_SHAPE_PRIOR_PX``): a mask a fraction of a pixel too small, or too fat and too short,
 otherwise reads as a depth, and with it a frame-rate error.
 Parameter uncertainties: Gauss-Newton at the optimum, inflated by the reduced chi-squared when it
@@ -158,7 +158,8 @@ _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabula
 # control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter through a
 # false clock of 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
 EDGE_SHAPE_PRIOR_PX = 0.15
-EDGE_FORM = "b0 + b1 e cos(2 phi)"  # stored in discover.json's edge_px: which nuisance a run fitted
+# stored in discover.json's edge_px: which nuisance a run fitted (the mask's own axis until 2026-11-23)
+EDGE_FORM = "b0 + b1 e cos(2 phi), axis of the fitted silhouette"
 _EDGE_SHAPE_GRID = torch.linspace(-0.6, 0.6, 13, dtype=torch.float64)  # b1 tabulated, pixels
 
 
@@ -171,36 +172,41 @@ def signed_distance(mask: np.ndarray) -> np.ndarray:
     return np.where(mask, inside - 0.5, 0.5 - outside).astype(np.float32)
 
 
-def normal_axis_angle(signed: Tensor, mask: np.ndarray) -> tuple[Tensor, float]:
-    """``cos(2 phi)`` (h, w) of each pixel and the mask's elongation ``e``: ``phi`` the angle between
-    the outline normal there (the gradient of the Gaussian-blurred (h, w) signed distance) and the
-    major axis of the (h, w) bool mask, ``e = (l1 - l2) / (l1 + l2)`` from its covariance's
-    eigenvalues. The edge nuisance's second term moves the outline by ``b1 e cos(2 phi)``.
+def normal_axis_angle(signed: Tensor, cov: Tensor) -> tuple[Tensor, float]:
+    """``cos(2 phi)`` (h, w) of each pixel and the elongation ``e`` of a silhouette with (2, 2)
+    covariance ``cov``: ``phi`` the angle between the outline normal there (the gradient of the
+    Gaussian-blurred (h, w) signed distance) and the major axis of ``cov``, ``e = (l1 - l2) / (l1 +
+    l2)`` from its eigenvalues. The edge nuisance's second term moves the outline by ``b1 e cos(2
+    phi)``.
 
-    ``e`` makes that term vanish where the axis is undefined: a ball's major axis is wherever the
-    segmentation noise stretched it, and an unweighted term fitted that noise (on fresh set 1's
-    drag_light_ball, ends minus sides +0.55 ± 0.01 px). Closed form: ``e cos(2 phi) = ((c_uu -
-    c_vv) cos 2 psi + 2 c_uv sin 2 psi) / (c_uu + c_vv)`` with ``psi`` the normal's angle to the
-    image's u axis.
+    discover takes ``cov`` from the fitted model's silhouette, not from the observed mask: on a
+    round silhouette the mask's own axis and elongation are the segmentation noise's, and a term
+    along them removes a share of that noise's elongation in every frame (on both sets'
+    drag_light_ball the fitted b1 ran to the table's edge, +0.44 and +0.59 px, against measured
+    -2.5 and -3.2). ``e`` makes the term vanish where the axis is undefined. Closed form: ``e cos(2
+    phi) = ((c_uu - c_vv) cos 2 psi + 2 c_uv sin 2 psi) / (c_uu + c_vv)`` with ``psi`` the normal's
+    angle to the image's u axis.
     """
     blurred = kornia.filters.gaussian_blur2d(signed[None, None], (7, 7), (1.5, 1.5), border_type="replicate")
     grad = kornia.filters.spatial_gradient(blurred, normalized=False)[0, 0]  # (2, h, w): d/du, d/dv
     psi = torch.atan2(grad[1], grad[0])
-    _, _, cov = mask_moments(torch.as_tensor(mask, dtype=signed.dtype)[None])
-    cuu, cuv, cvv = cov[0, 0, 0], cov[0, 0, 1], cov[0, 1, 1]
+    cov = cov.to(signed)
+    cuu, cuv, cvv = cov[0, 0], cov[0, 1], cov[1, 1]
     spread = torch.hypot(cuu - cvv, 2 * cuv)  # l1 - l2
     cos2 = ((cuu - cvv) * torch.cos(2 * psi) + 2 * cuv * torch.sin(2 * psi)) / spread.clamp(min=1e-12)
     return cos2, float(spread / (cuu + cvv))
 
 
-def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tensor = _EDGE_SHAPE_GRID) -> Tensor:
+def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = _EDGE_GRID,
+                  shape_grid: Tensor = _EDGE_SHAPE_GRID) -> Tensor:
     """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of the grids.
 
     A pixel's coverage after moving the outline by ``b = b0 + b1 e cos(2 phi)`` pixels is
     ``clip(d - b + 1/2, 0, 1)`` with ``d`` its signed distance to the outline (Euclidean; positive
-    inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the mask's
-    major axis and ``e`` the mask's elongation (:func:`normal_axis_angle`), so ``b = 0`` gives the
-    mask back, ``b > 0`` erodes and ``b < 0`` dilates.
+    inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the major
+    axis and ``e`` the elongation of the (T, 2, 2) covariances ``axes`` (:func:`normal_axis_angle`;
+    discover passes its fitted silhouettes', None takes the masks' own), so ``b = 0`` gives the mask
+    back, ``b > 0`` erodes and ``b < 0`` dilates.
 
     Returns:
         (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
@@ -215,7 +221,8 @@ def _edge_moments(masks: np.ndarray, grid: Tensor = _EDGE_GRID, shape_grid: Tens
         y0, x0 = max(rows[0] - margin, 0), max(cols[0] - margin, 0)
         crop = mask[y0:rows[-1] + margin + 1, x0:cols[-1] + margin + 1]
         signed = torch.as_tensor(signed_distance(crop), dtype=torch.float64)
-        cos2, elongation = normal_axis_angle(signed, crop)
+        cov = mask_moments(torch.as_tensor(crop, dtype=torch.float64)[None])[2][0] if axes is None else axes[t]
+        cos2, elongation = normal_axis_angle(signed, cov)
         bias = grid[:, None, None, None] + shape_grid[None, :, None, None] * (elongation * cos2)
         v, u = torch.meshgrid(torch.arange(crop.shape[0], dtype=torch.float64) + y0,
                               torch.arange(crop.shape[1], dtype=torch.float64) + x0, indexing="ij")
@@ -322,7 +329,7 @@ class VideoProblem:
         self.train = used.copy()
         self.train[idx[-n_held:]] = False
         self.held = used & ~self.train
-        self.edge_table = _edge_moments(problem.masks.cpu().numpy() > 0.5).to(problem.masks.device)
+        self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
@@ -346,15 +353,20 @@ class VideoProblem:
             channels = self._channels(model.cands, self.effects(model.values), model.edge)
         return {k: v[0].cpu().numpy() for k, v in channels.items()}
 
-    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
-        """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
-        observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
+    def _fitted_moments(self, cands: Candidates, effects: Sequence[Effect]) -> tuple[Tensor, Tensor, Tensor]:
+        """Area (B, T), centroid (B, T, 2) and covariance (B, T, 2, 2) of B candidates' soft
+        silhouettes in every frame (image pixels)."""
         frames, batch = len(self.problem.times), len(cands)
         cover = candidate_silhouettes(self.problem, cands, frames, self.crop, self.sigma, effects)
         windows = self.problem.windows(self.crop).repeat(batch, 1)
-        fitted = tuple(m.reshape(batch, frames, *m.shape[1:])
-                       for m in _moments(cover.reshape(batch * frames, self.crop, self.crop), windows))
-        observed = tuple(m.expand(batch, *m.shape) for m in _moments_at(self.edge_table, edge))
+        return tuple(m.reshape(batch, frames, *m.shape[1:])
+                     for m in _moments(cover.reshape(batch * frames, self.crop, self.crop), windows))
+
+    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
+        """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
+        observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
+        fitted = self._fitted_moments(cands, effects)
+        observed = tuple(m.expand(len(cands), *m.shape) for m in _moments_at(self.edge_table, edge))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
                 for k, v in channel_values(observed, fitted).items()}
@@ -611,13 +623,22 @@ class VideoProblem:
         return out
 
     def _set_noise(self, model: _Model, threshold: float = 6.0) -> None:
-        """Noise floors from the baseline's residuals, after leaving out outlier frames.
+        """The edge nuisance's table, then noise floors from the baseline's residuals, after
+        leaving out outlier frames.
+
+        The table's axis and elongation per frame (the second term's, :func:`normal_axis_angle`)
+        are those of ``model``'s silhouettes, fixed from here on: the object's shape as the
+        baseline sees it, which the segmentation noise does not move.
 
         A frame is an outlier when, in any channel, it departs from the straight line through
         its two neighbours by more than ``threshold`` jitter standard deviations (a failed
         segmentation, e.g. a blurred first frame): missing physics is smooth in time and never
         does that. Outliers are left out of every model's criterion and listed in the report.
         """
+        with torch.no_grad():
+            axes = self._fitted_moments(model.cands, self.effects(model.values))[2][0]
+        masks = self.problem.masks.cpu().numpy() > 0.5
+        self.edge_table = _edge_moments(masks, axes.cpu()).to(self.problem.masks.device)
         self.noise = {name: 1.0 for name in CHANNELS}
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)

@@ -25,6 +25,7 @@ import torch
 from make_concealed import fresh_folder
 
 from torchfit.discover_video import EDGE_FORM, normal_axis_angle, signed_distance
+from torchfit.losses import mask_moments
 from torchfit.video import Observation, load_observation
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -64,7 +65,8 @@ def edge_bias_by_normal(folder: Path) -> dict:
     cos2, biases = [], []
     for t in np.flatnonzero(observation.used):
         true_signed = signed_distance(truth[t])
-        cos2_phi, elongation = normal_axis_angle(torch.as_tensor(true_signed, dtype=torch.float64), truth[t])
+        true_cov = mask_moments(torch.as_tensor(truth[t], dtype=torch.float64)[None])[2][0]
+        cos2_phi, elongation = normal_axis_angle(torch.as_tensor(true_signed, dtype=torch.float64), true_cov)
         edge = np.abs(true_signed) < 0.6  # the pixels beside the true outline, either side
         cos2_phi = cos2_phi.numpy()[edge]
         cos = np.sqrt(np.clip(0.5 * (1 + cos2_phi), 0, 1))  # |cos phi|
