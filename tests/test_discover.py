@@ -3,7 +3,9 @@
 import json
 import math
 
+import numpy as np
 import pytest
+import torch
 from hydra import compose, initialize_config_module
 
 from torchfit.discover import SelectionSettings, discover_points, select_effects
@@ -112,6 +114,54 @@ def test_an_effect_fitted_outside_its_physics_is_not_named():
     selection = select_effects(Disguise(), SelectionSettings())
     assert selection.verdict == []
     assert selection.steps[0].scores["linear_drag"]["unphysical"]
+
+
+def test_a_chi2_drop_the_effect_own_uncertainty_does_not_carry_is_not_named():
+    """A refit that lowers chi-squared by 16 while its clock stays 1.4 standard errors from 1 (the
+    Wald statistic 1.9: fresh drag_light_ball's second-round clock) moved the shared parameters,
+    not the clock: not named. The same drop with a Wald statistic that agrees is named, and a
+    problem that reports no Wald statistic is judged as before."""
+    from torchfit.discover import ModelFit
+
+    class Clock:
+        noise_var = 1.0
+        candidates = ("time_scale",)
+
+        def __init__(self, wald):
+            self.wald = wald
+
+        def fit(self, effects, warm):
+            rss = 300.0 if not effects else 284.0
+            params = {"time_scale": {"time_scale": {"value": 1.007, "std": 0.0051, "unit": "1"}}} if effects else {}
+            wald = None if self.wald is None else ({"time_scale": self.wald} if effects else {})
+            held = 1.0 if not effects else 0.9
+            return ModelFit(tuple(effects), rss, 272, 16 + len(effects), params, (rss / 272) ** 0.5, held, wald=wald)
+
+    rejected = select_effects(Clock(1.9), SelectionSettings())
+    assert rejected.verdict == [] and rejected.steps[0].scores["time_scale"]["fails"] == ["wald"]
+    assert rejected.steps[0].scores["time_scale"]["delta_bic"] > 10  # the chi2 drop alone would pass
+    assert select_effects(Clock(17.0), SelectionSettings()).verdict == ["time_scale"]
+    assert select_effects(Clock(None), SelectionSettings()).verdict == ["time_scale"]
+
+
+def test_wald_statistic_of_a_linear_model_is_its_chi2_drop():
+    """For least squares linear in its parameters the Wald statistic of a block of them equals the
+    chi-squared drop from fixing that block at its null values (here two of three columns)."""
+    from torchfit.discover import wald_statistic
+
+    rng = np.random.default_rng(3)
+    x = np.linspace(0, 1, 40)
+    design = np.stack([np.ones_like(x), x, x**2], -1)
+    y = design @ np.array([0.3, 0.2, -0.4]) + 0.1 * rng.normal(size=40)
+    sigma = 0.1
+    full, *_ = np.linalg.lstsq(design / sigma, y / sigma, rcond=None)
+    chi_full = float(np.sum(((y - design @ full) / sigma) ** 2))
+    nested, *_ = np.linalg.lstsq(design[:, :1] / sigma, y / sigma, rcond=None)
+    chi_nested = float(np.sum(((y - design[:, :1] @ nested) / sigma) ** 2))
+    cov = np.linalg.inv(design.T @ design / sigma**2)
+    wald = wald_statistic(torch.tensor(full[1:]), torch.zeros(2, dtype=torch.float64), torch.tensor(cov[1:, 1:]))
+    assert wald == pytest.approx(chi_nested - chi_full, rel=1e-9)
+    assert math.isnan(wald_statistic(torch.tensor([1.0]), torch.zeros(1), torch.tensor([[float("nan")]])))
 
 
 def test_a_prediction_at_the_noise_level_is_not_vetoed_by_held_out_frames():

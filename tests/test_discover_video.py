@@ -329,8 +329,13 @@ def test_added_effect_starts_from_the_screened_start_nearest_the_data():
         costs[clock] = video._cost(video._lm(own, used, dv.SCREEN_ITERATIONS)[1])
     assert float(start.values["time_scale"]["time_scale"]) == pytest.approx(min(costs, key=costs.get))
     assert float(screened.values["time_scale"]["time_scale"]) == pytest.approx(1.04, abs=0.005)
-    final, _, _ = video._lm(screened, used, video.iterations)
-    assert float(final.values["time_scale"]["time_scale"]) == pytest.approx(1.04, abs=0.005)
+    final, resid, jac = video._lm(screened, used, video.iterations)
+    clock = float(final.values["time_scale"]["time_scale"])
+    assert clock == pytest.approx(1.04, abs=0.005)
+    # the Wald statistic measures the clock from its null of 1 in its own standard errors
+    std, _, wald = video._uncertainty(final, resid, jac)
+    assert wald["time_scale"] == pytest.approx(((clock - 1.0) / std["time_scale"]["time_scale"]) ** 2, rel=1e-6)
+    assert wald["time_scale"] > 25
 
 
 def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch):

@@ -13,7 +13,10 @@ to measure the prediction error there. The engine then
    p-value and the held-out RMS;
 4. adds the winner if it beats the noise (ΔBIC above a threshold *and* a better held-out
    prediction) with parameters its physics allows (a negative damping is something else in
-   disguise, never named as damping); if a look-alike is within the BIC margin of the winner the step names both as
+   disguise, never named as damping) and, where the problem reports it, a fitted value that its
+   own uncertainty puts as far from the null as the ΔBIC claims (the Wald statistic passes the
+   same threshold: a refit that lowers χ² while its new parameter stays within a few standard
+   errors of zero moved the shared parameters, not the effect); if a look-alike is within the BIC margin of the winner the step names both as
    indistinguishable and stops — the data cannot say which;
 5. repeats until nothing beats the noise.
 
@@ -59,6 +62,7 @@ __all__ = [
     "locate_points",
     "plot_residuals",
     "select_effects",
+    "wald_statistic",
     "without_weakest_block",
 ]
 
@@ -117,6 +121,9 @@ class ModelFit:
         payload: the problem's own (warm start, residuals).
         parts: optional (U,) chi-squared per unit of the data (a video's frames, in order), the
             part of ``rss / noise_var`` each unit contributes: where a candidate's evidence lies.
+        wald: optional ``{effect: W}``, ``W = (theta - theta_null)^T C^-1 (theta - theta_null)``
+            of each effect's parameters with their covariance ``C`` at this fit: the chi-squared
+            the fit's own uncertainty says the effect is worth (see :func:`select_effects`).
     """
 
     effects: tuple[str, ...]
@@ -128,6 +135,7 @@ class ModelFit:
     heldout_rms: float
     payload: Any = None
     parts: np.ndarray | None = None
+    wald: dict | None = None
 
 
 class SelectionProblem(Protocol):
@@ -228,6 +236,16 @@ def _spread(base: ModelFit, fit: ModelFit, d_bic: float, blocks: int) -> dict:
     return out
 
 
+def wald_statistic(value: torch.Tensor, null: torch.Tensor, cov: torch.Tensor) -> float:
+    """``(value - null)^T cov^+ (value - null)`` of (P,) parameters with (P, P) covariance (the
+    pseudo-inverse, so a direction the data do not see adds nothing); NaN if any is not finite."""
+    diff = (value - null).double()
+    cov = cov.double()
+    if not (torch.isfinite(diff).all() and torch.isfinite(cov).all()):
+        return float("nan")
+    return float(diff @ torch.linalg.pinv(cov, hermitian=True) @ diff)
+
+
 def _scaled(std, factor: float):
     """``std`` (a number or a list of numbers) times ``factor``; NaN where unknown."""
     if isinstance(std, (list, tuple)):
@@ -262,10 +280,13 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             spread = _spread(base, fit, bic_base - bic, settings.evidence_blocks)
             heldout_ok = gain >= settings.min_heldout_gain or (
                 settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise)
+            wald = (fit.wald or {}).get(name)
+            wald_bic = None if wald is None else wald - d_k * math.log(max(fit.n_obs, 2))
             fails = [test for test, failed in (
                 ("delta_bic", not bic_base - bic > settings.min_delta_bic), ("unphysical", bool(outside)),
                 ("evidence_spread", not spread.get("delta_bic_without_block", 1.0) > 0),
-                ("heldout", not heldout_ok)) if failed]
+                ("heldout", not heldout_ok),
+                ("wald", wald_bic is not None and not wald_bic > settings.min_delta_bic)) if failed]
             # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
             need = math.sqrt(max(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)), 0.0))
             step.scores[name] = {
@@ -275,7 +296,7 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "delta_loss": base.rss - fit.rss, "rms_before": base.fit_rms, "rms_after": fit.fit_rms,
                 "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
                 "heldout_gain": gain, "params": fit.params,
-                "unphysical": outside,
+                "unphysical": outside, "wald_chi2": wald, "wald_delta_bic": wald_bic,
                 **spread,
                 "fails": fails, "passes": not fails,
             }
@@ -377,7 +398,30 @@ class PointsProblem:
         if self.progress:
             self.progress(f"    fit {list(effects)}: {time.perf_counter() - clock:.1f} s")
         return ModelFit(effects, full.rss, full.n_obs, full.n_free, self.describe(full),
-                        math.sqrt(full.rss / full.n_obs), heldout, {"all": full, "train": train})
+                        math.sqrt(full.rss / full.n_obs), heldout, {"all": full, "train": train},
+                        wald=self.wald(full))
+
+    def wald(self, fit: PointFit) -> dict:
+        """``{effect: W}``: the Wald statistic of each effect's shared parameters against their null
+        values (:func:`wald_statistic`, the covariance scaled as in :meth:`describe`); effects
+        without shared parameters or covariance are left out."""
+        if fit.shared_covariance is None:
+            return {}
+        variance = max(self.noise_var, fit.rss / max(fit.n_obs - fit.n_free, 1))
+        blocks: dict = {}
+        col = fit.model.n_local
+        for name, pname, size in fit.model.columns[fit.model._first_effect():]:
+            null = torch.as_tensor(EFFECTS[name].null_params[pname], dtype=torch.float64).reshape(-1)
+            blocks.setdefault(name, []).append((col, size, null.expand(size)))
+            col += size
+        out = {}
+        for name, parts in blocks.items():
+            index = torch.cat([torch.arange(c, c + n) for c, n, _ in parts])
+            value = fit.params[0, index]
+            local = index - fit.model.n_local
+            cov = fit.shared_covariance[local][:, local] * variance
+            out[name] = wald_statistic(value, torch.cat([null for _, _, null in parts]), cov)
+        return out
 
     def describe(self, fit: PointFit) -> dict:
         """Effect parameters with standard errors, in physical units.

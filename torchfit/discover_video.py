@@ -41,6 +41,7 @@ from .discover import (
     _criterion,
     _jsonable,
     select_effects,
+    wald_statistic,
 )
 from .dynamics import RigidBody, integrate
 from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect
@@ -504,8 +505,9 @@ class VideoProblem:
                 break
         return model, resid, jac
 
-    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float]]:
-        """Standard errors of the effect parameters and of the edge bias's two terms (pixels):
+    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float], dict]:
+        """Standard errors of the effect parameters, of the edge bias's two terms (pixels), and each
+        effect's Wald statistic against its null values (:func:`torchfit.discover.wald_statistic`):
         Gauss-Newton at the optimum, inflated by the reduced chi-squared when it exceeds 1."""
         good = torch.isfinite(resid)
         j, r = jac[good], resid[good]
@@ -513,14 +515,22 @@ class VideoProblem:
         reduced = float(r.square().sum()) / max(n - p, 1)
         cov = torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
         std = cov.diagonal().clamp(min=0).sqrt()[14:]
-        out, offset = {}, 0
+        out, wald, offset = {}, {}, 0
         for name, params in model.values.items():
-            for pname, value in params.items():
-                count = torch.as_tensor(value).numel()
-                part = std[offset:offset + count] * EFFECT_SCALES.get(pname, 0.1)
+            start, value, null = offset, [], []
+            for pname, current in params.items():
+                count = torch.as_tensor(current).numel()
+                scale = EFFECT_SCALES.get(pname, 0.1)
+                part = std[offset:offset + count] * scale
                 offset += count
                 out.setdefault(name, {})[pname] = part.tolist() if count > 1 else float(part[0])
-        return out, (float(std[offset]) * EDGE_SCALE, float(std[offset + 1]) * EDGE_SCALE)
+                # in the Jacobian's scaled units
+                value.append(torch.as_tensor(current, dtype=torch.float64).reshape(-1) / scale)
+                null.append(torch.as_tensor(EFFECTS[name].null_params[pname], dtype=torch.float64).reshape(-1)
+                            .expand(count) / scale)
+            block = cov[14 + start:14 + offset, 14 + start:14 + offset].cpu()
+            wald[name] = wald_statistic(torch.cat(value), torch.cat(null), block)
+        return out, (float(std[offset]) * EDGE_SCALE, float(std[offset + 1]) * EDGE_SCALE), wald
 
     def _describe(self, model: _Model, std: dict) -> dict:
         params = {}
@@ -535,7 +545,7 @@ class VideoProblem:
                 }
         return params
 
-    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, float]],
+    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, float], dict],
                held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
@@ -559,7 +569,7 @@ class VideoProblem:
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
-                        parts=per_frame)
+                        parts=per_frame, wald=std[2])
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
@@ -883,6 +893,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
             if "heldout" in score["fails"]:
                 reasons.append(f"it predicts the held-out frames worse ({score['heldout_rms_before']:.2f} -> "
                                f"{score['heldout_rms_after']:.2f} noise floors)")
+            if "wald" in score["fails"]:
+                reasons.append(f"its fitted value is within its own uncertainty of none (Wald chi2 "
+                               f"{score['wald_chi2']:.1f} against a chi2 drop of {score['delta_chi2']:.1f}): the refit "
+                               "moved the other parameters, not this effect")
             if "evidence_spread" in score["fails"]:
                 first, last = (int(frames[i]) for i in score["weakest_block"])
                 reasons.append(f"its evidence rests on frames {first}-{last} of the fitted span "
