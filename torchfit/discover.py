@@ -404,32 +404,31 @@ class PointsProblem:
     def wald(self, fit: PointFit) -> dict:
         """``{effect: W}``: the Wald statistic of each effect's shared parameters against their null
         values (:func:`wald_statistic`, the covariance scaled as in :meth:`describe`); effects
-        without shared parameters or covariance are left out."""
+        without shared parameters or covariance are left out. An effect's columns are contiguous."""
         if fit.shared_covariance is None:
             return {}
-        variance = max(self.noise_var, fit.rss / max(fit.n_obs - fit.n_free, 1))
-        blocks: dict = {}
-        col = fit.model.n_local
+        spans, nulls, col = {}, {}, fit.model.n_local
         for name, pname, size in fit.model.columns[fit.model._first_effect():]:
-            null = torch.as_tensor(EFFECTS[name].null_params[pname], dtype=torch.float64).reshape(-1)
-            blocks.setdefault(name, []).append((col, size, null.expand(size)))
+            spans[name] = (spans.get(name, (col,))[0], col + size)
+            nulls.setdefault(name, []).append(
+                torch.as_tensor(EFFECTS[name].null_params[pname], dtype=torch.float64).reshape(-1).expand(size))
             col += size
-        out = {}
-        for name, parts in blocks.items():
-            index = torch.cat([torch.arange(c, c + n) for c, n, _ in parts])
-            value = fit.params[0, index]
-            local = index - fit.model.n_local
-            cov = fit.shared_covariance[local][:, local] * variance
-            out[name] = wald_statistic(value, torch.cat([null for _, _, null in parts]), cov)
-        return out
+        local = fit.model.n_local
+        return {name: wald_statistic(fit.params[0, a:b], torch.cat(nulls[name]),
+                                     fit.shared_covariance[a - local:b - local, a - local:b - local] * self._variance(fit))
+                for name, (a, b) in spans.items()}
+
+    def _variance(self, fit: PointFit) -> float:
+        """The larger of the estimated noise variance and the residual variance per degree of
+        freedom (model misfit counts as noise): what the fit's covariance is scaled by."""
+        return max(self.noise_var, fit.rss / max(fit.n_obs - fit.n_free, 1))
 
     def describe(self, fit: PointFit) -> dict:
         """Effect parameters with standard errors, in physical units.
 
-        The standard error scales the fit's covariance by the larger of the estimated noise
-        variance and the residual variance per degree of freedom (model misfit counts as noise).
+        The standard error scales the fit's covariance by :meth:`_variance`.
         """
-        variance = max(self.noise_var, fit.rss / max(fit.n_obs - fit.n_free, 1))
+        variance = self._variance(fit)
         out: dict = {}
         col = fit.model.n_local
         for name, pname, size in fit.model.columns[fit.model._first_effect():]:
