@@ -42,9 +42,9 @@ def test_lens_distortion_render_gradcheck_float64():
     assert torch.allclose(cover(None, lens.distort), barrel)
 
 
-def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0)):
-    """Masks of a thrown box rendered by torchfit with one effect, and the true candidate."""
-    shape = load_shape(primitive="box", dims={"extents": [0.16, 0.08, 0.04]}, density=300.0)
+def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0), shape=None):
+    """Masks of a thrown box (or ``shape``) rendered by torchfit with one effect, and the true candidate."""
+    shape = shape or load_shape(primitive="box", dims={"extents": [0.16, 0.08, 0.04]}, density=300.0)
     camera = Camera(focal, focal, 79.5, 59.5, 160, 120)
     body = RigidBody.from_shape(shape, F64)
     mesh = RenderMesh.from_shape(shape, F64)
@@ -364,3 +364,22 @@ def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch)
     final, _, _ = video._lm(start, used, video.iterations)
     assert len(calls) > 3
     assert float(final.values["time_scale"]["time_scale"]) == pytest.approx(1.04, abs=0.005)
+
+
+def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_it():
+    """The criterion's count: a sphere's orientation and spin (6 of the state's 14) are free but
+    unseen, so the baseline is charged 14 + 2 (edge) - 6; Magnus lift is charged the three
+    numbers of C_L w and an offset centre of mass its three plus the spin's. A box is charged
+    every parameter."""
+    import torchfit.discover_video as dv
+
+    ball = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0)
+    counts = {}
+    for name, shape in (("ball", ball), ("box", None)):
+        problem, truth = _synthetic("time_scale", {"time_scale": 1.0}, shape=shape)
+        video = dv.VideoProblem(problem)
+        model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+        counts[name] = {effects: video._free_count(video._extend(model, effects))
+                        for effects in ((), ("quadratic_drag",), ("magnus",), ("com_offset",))}
+    assert counts["ball"] == {(): 10, ("quadratic_drag",): 11, ("magnus",): 13, ("com_offset",): 16}
+    assert counts["box"] == {(): 16, ("quadratic_drag",): 17, ("magnus",): 17, ("com_offset",): 19}

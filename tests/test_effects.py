@@ -180,3 +180,55 @@ def _distort(lens, k1, k2, points):
     clone = type(lens).__new__(type(lens))
     clone.__dict__ = {**lens.__dict__, "_parameters": {"k1": k1, "k2": k2}}
     return clone.distort(points)
+
+
+@pytest.mark.parametrize("names, own, hidden_seen", [
+    ((), 0, 0),
+    (("quadratic_drag",), 1, 0),
+    (("magnus",), 1, 2),
+    (("com_offset",), 3, 3),
+    (("magnus", "com_offset"), 4, 3),
+])
+def test_reveals_counts_the_hidden_rotation_a_spheres_flight_comes_to_depend_on(names, own, hidden_seen):
+    """A sphere's centre (all its silhouette shows) does not depend on its orientation and spin;
+    with an effect it may. The rank of the centre's track against the effect's own parameters and
+    the six hidden components (float64, central differences) is the effect's parameter count plus
+    ``reveals``: Magnus lift sees the three numbers of ``C_L ω``; an offset centre of mass wobbles
+    with the spin (three; the orientation only turns the offset, which its own three count). With
+    both, the spin is seen once and ``C_L`` apart from it: the summed ``reveals`` (5) overcounts."""
+    from torchfit.rotation import axis_angle_to_quat, quat_multiply, quat_to_matrix
+
+    shape = load_shape(primitive="sphere", dims={"radius": 0.02}, density=80.0)
+    assert shape.round and not load_shape(primitive="box", density=80.0).round
+    body = RigidBody.from_shape(shape, F64)
+    times = torch.linspace(0.0, 0.5, 16, dtype=F64)
+    base = axis_angle_to_quat(torch.tensor([[0.3, -0.5, 0.2]], dtype=F64))
+    defaults = {"quadratic_drag": [0.45], "magnus": [0.8], "com_offset": [0.004, -0.002, 0.003]}
+
+    def centre(params: torch.Tensor) -> torch.Tensor:
+        delta, omega, rest = params[:3], params[3:6], params[6:]
+        effects, offset = [], 0
+        for name in names:
+            count = len(defaults[name])
+            value = rest[offset:offset + count]
+            offset += count
+            key = next(iter(EFFECTS[name].null_params))
+            effects.append(make_effect(name, area=shape.reference_area, **{key: value if count > 1 else value[0]}))
+        true_body, true_times, forces = apply_effects(effects, body, times)
+        quat = quat_multiply(axis_angle_to_quat(delta[None]), base)
+        lever = (quat_to_matrix(quat) @ true_body.com[..., None])[..., 0]
+        state = torch.cat((torch.tensor([[0.1, 0.0, 2.0]], dtype=F64) - lever, quat,
+                           torch.tensor([[1.0, -3.0, 0.5]], dtype=F64) - torch.cross(omega[None], lever, dim=-1),
+                           omega[None]), -1)
+        gravity = torch.tensor([[0.0, 9.81, 0.0]], dtype=F64)
+        return simulate(state, true_times, true_body, gravity, forces).position.reshape(-1)
+
+    params = torch.tensor([0.0, 0.0, 0.0, 3.0, -5.0, 8.0] + sum((defaults[n] for n in names), []), dtype=F64)
+    step = 1e-5 * torch.eye(len(params), dtype=F64)
+    with torch.no_grad():
+        jac = torch.stack([(centre(params + h) - centre(params - h)) / 2e-5 for h in step], -1)
+    values = torch.linalg.svdvals(jac)
+    rank = int((values > 1e-6 * max(float(values.max()), 1e-3)).sum())
+    assert rank == own + hidden_seen
+    revealed = sum(EFFECTS[name].reveals for name in names)
+    assert revealed == hidden_seen if len(names) < 2 else revealed >= hidden_seen

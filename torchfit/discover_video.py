@@ -336,6 +336,8 @@ class VideoProblem:
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
+        # a sphere's orientation and spin (6) are in the state but no silhouette shows them
+        self.hidden = 6 if problem.shape.round else 0
 
     # -- models -------------------------------------------------------------------------------
 
@@ -437,6 +439,15 @@ class VideoProblem:
     def _extra_count(self, model: _Model) -> int:
         """Free parameters besides the 14 of the state: the effects' and the edge bias's two."""
         return 2 + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
+
+    def _free_count(self, model: _Model) -> int:
+        """Free parameters the criterion charges: the 14 of the state and the extras, less those of
+        a sphere's hidden orientation and spin that none of the model's effects reveals
+        (:attr:`torchfit.effects.Effect.reveals`). Counting all 14 charged a sphere's Magnus lift
+        for one parameter while it fits the three of ``C_L ω`` (fresh drag_light_ball: Magnus
+        ΔBIC 61.2 in one run, 12.1 in another, against drag's 69.3)."""
+        revealed = sum(EFFECTS[name].reveals for name in model.values)
+        return 14 + self._extra_count(model) - max(self.hidden - revealed, 0)
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences;
@@ -554,7 +565,7 @@ class VideoProblem:
         per_frame = np.nansum(np.stack(list(whitened.values())) ** 2, 0)  # (N,) chi-squared of each used frame
         held_channels = self.residuals(held_model)
         held = self._normalised(held_channels, self.held)
-        n_free = 14 + self._extra_count(model)
+        n_free = self._free_count(model)
         # the edge bias's prior terms count as two more observations
         rss = float(np.nansum(everything**2)) + sum(p * p for p in _edge_prior(model.edge))
         n_obs = int(np.isfinite(everything).sum()) + 2

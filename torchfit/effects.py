@@ -85,7 +85,10 @@ class Effect(nn.Module):
     ``replaces`` (effects this one contains as a special case, e.g. ``wind`` contains
     ``quadratic_drag``: model selection swaps them rather than stacking them), ``bounds``
     (parameter -> (low, high) the physics allows: a fit outside says the effect is standing in for
-    something else).
+    something else), ``reveals`` (how many of a sphere's six hidden state components, its
+    orientation and spin, which no silhouette shows, the effect makes the motion depend on beyond
+    what its own parameters already count: free parameters a fit on a sphere gains with it; exact
+    for one effect, an upper bound summed over several, tests/test_effects.py).
     """
 
     name: str = ""
@@ -94,6 +97,7 @@ class Effect(nn.Module):
     units: ClassVar[dict] = {}
     replaces: ClassVar[tuple[str, ...]] = ()
     bounds: ClassVar[dict] = {}  # parameter -> (low, high) that the physics allows
+    reveals: ClassVar[int] = 0
 
     def forward(self, state: FlightState) -> tuple[Tensor, Tensor]:
         if self.kind == "force":  # pragma: no cover - abstract
@@ -191,10 +195,12 @@ class Magnus(Effect):
     ``S = r|ω|/|v|``. For ω ⟂ v this is the textbook sphere lift ``½ ρ A C_L,std |v|² (ω̂ × v̂)``
     with ``C_L,std = C_L · S``; a constant ``C_L`` here means lift proportional to spin, which is
     what low-spin-ratio sphere data show (``C_L,std ≈ S`` for ``S`` ≲ 0.3, i.e. ``C_L ≈ 1``). No
-    torque.
+    torque. On a sphere, whose spin no silhouette shows, the motion depends on the vector ``C_L ω``:
+    three numbers, two more than ``C_L`` (``reveals = 2``).
     """
 
     name = "magnus"
+    reveals = 2
     null_params: ClassVar[dict] = {"lift_coefficient": 0.0}
     units: ClassVar[dict] = {"lift_coefficient": "1 (per unit spin ratio r|w|/|v|)"}
 
@@ -267,11 +273,13 @@ class ComOffset(Effect):
     ``δ`` (m, mesh/body frame) shifts the point the body spins about; the state's mesh-origin
     position and velocity are unchanged, so the flight differs (the origin wobbles about the true
     centre of mass). The inertia about the centre is kept (the ``inertia`` effect scales it).
-    Kind ``body``.
+    Kind ``body``. On a sphere the wobble shows the spin (``reveals = 3``); the orientation only
+    turns ``δ``, which its own three components already count.
     """
 
     name = "com_offset"
     kind = "body"
+    reveals = 3
     null_params: ClassVar[dict] = {"offset": (0.0, 0.0, 0.0)}
     units: ClassVar[dict] = {"offset": "m (body frame)"}
 
