@@ -92,11 +92,6 @@ EDGE_PX = 0.1
 # recordings, lag two 0.16 where AR(1) predicts 0.14). The criterion whitens the residuals with it.
 FRAME_CORRELATION = 0.4
 
-# The state's columns (in SCALES units, the order of SCALES) of the refits' Jacobian.
-_STATE_SIZES = {"delta": 3, "com": 3, "com_velocity": 3, "omega": 3, "gravity_angles": 2}
-_STATE_SLICES = {name: slice(sum(_STATE_SIZES[n] for n in list(SCALES)[:i]),
-                             sum(_STATE_SIZES[n] for n in list(SCALES)[:i + 1])) for i, name in enumerate(SCALES)}
-
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
 
@@ -460,10 +455,14 @@ class VideoProblem:
         data sees only through the mesh's facets made the refits wander from run to run (first-set
         drag_foam_ball: C_d 0.53, 0.87 and 0.74 in three runs, each ± 0.1)."""
         frozen = torch.zeros(14 + self._extra_count(model), dtype=torch.bool)
-        if self.hidden:
-            frozen[_STATE_SLICES["delta"]] = True
-            if not any(EFFECTS[name].reveals for name in model.values):
-                frozen[_STATE_SLICES["omega"]] = True
+        if not self.hidden:
+            return frozen
+        held = {"delta"} | (set() if any(EFFECTS[name].reveals for name in model.values) else {"omega"})
+        offset = 0
+        for name in SCALES:  # the state's columns, as _build lays them out
+            size = getattr(model.cands, name).shape[1]
+            frozen[offset:offset + size] = name in held
+            offset += size
         return frozen
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
@@ -540,7 +539,7 @@ class VideoProblem:
         Gauss-Newton at the optimum, inflated by the reduced chi-squared when it exceeds 1."""
         good = torch.isfinite(resid)
         j, r = jac[good], resid[good]
-        n, p = len(j), int((j != 0).any(0).sum())  # held-fixed columns are zero
+        n, p = len(j), j.shape[1] - int(self._frozen(model).sum())  # held-fixed columns are zero
         reduced = float(r.square().sum()) / max(n - p, 1)
         cov = torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
         std = cov.diagonal().clamp(min=0).sqrt()[14:]
