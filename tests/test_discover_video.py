@@ -396,3 +396,32 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
     assert float((after.cands.com - moved.cands.com).norm()) > 1e-3
     assert torch.allclose(after.cands.quat(), moved.cands.quat(), atol=1e-12, rtol=0)
     assert torch.equal(after.cands.omega, moved.cands.omega)
+
+
+@pytest.mark.parametrize("ball", [False, True])
+def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
+    """The batched Jacobian (free state columns in one render, the edge bias's columns reusing the
+    unmoved render) equals the plain definition: move one scaled parameter by the step, recompute
+    the whole residual vector. A sphere's held-fixed orientation and spin columns are zero."""
+    import torchfit.discover_video as dv
+
+    shape = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0) if ball else None
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.02}, shape=shape)
+    video = dv.VideoProblem(problem)
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(model)
+    model = video._extend(dv._Model(model.cands, {}, (0.1, -0.05)), ("time_scale", "quadratic_drag"))
+    mask = video.problem.used
+    step = 1e-3
+    base, jac = video._jacobian(model, mask, step)
+    n = 14 + video._extra_count(model)
+    assert jac.shape == (len(base), n)
+    frozen = video._frozen(model)
+    with torch.no_grad():
+        for column in range(n):
+            state, extra = torch.zeros(1, 14, dtype=F64), torch.zeros(n - 14, dtype=F64)
+            (state[0] if column < 14 else extra)[column if column < 14 else column - 14] = step
+            moved = video._vector(*video._build(model, state, extra), mask)[0]
+            expected = torch.zeros_like(base) if frozen[column] else (moved - base) / step
+            assert torch.allclose(jac[:, column], expected, rtol=1e-6, atol=1e-9), column
+    assert int(frozen.sum()) == (6 if ball else 0)  # neither effect reveals a sphere's orientation or spin

@@ -368,8 +368,11 @@ class VideoProblem:
     def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
         observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
-        fitted = self._fitted_moments(cands, effects)
-        observed = tuple(m.expand(len(cands), *m.shape) for m in _moments_at(self.edge_table, edge))
+        return self._channels_of(self._fitted_moments(cands, effects), edge)
+
+    def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, float]) -> dict:
+        """:meth:`_channels` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
+        observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, edge))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
                 for k, v in channel_values(observed, fitted).items()}
@@ -406,9 +409,13 @@ class VideoProblem:
         """(B, N + 2) whitened residuals of the frames in ``mask`` (channel-major, see
         :meth:`_whitened`), then the edge bias's prior terms ``(b0 / EDGE_PRIOR_PX, b1 /
         EDGE_SHAPE_PRIOR_PX)``."""
-        channels = self._channels(cands, effects, edge)
+        return self._vector_of(self._fitted_moments(cands, effects), edge, mask)
+
+    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, float], mask: Tensor) -> Tensor:
+        """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
+        channels = self._channels_of(fitted, edge)
         prior = torch.tensor(_edge_prior(edge), dtype=channels[CHANNELS[0]].dtype,
-                             device=mask.device).expand(len(cands), 2)
+                             device=mask.device).expand(len(fitted[0]), 2)
         frames = mask.cpu().numpy()
         return torch.cat([self._whitened(channels[c][:, mask], frames, c) for c in CHANNELS] + [prior], -1)
 
@@ -466,24 +473,34 @@ class VideoProblem:
         return frozen
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
-        """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences;
-        the state columns in one batch)."""
+        """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences).
+
+        The free state columns are one batch of renders; each effect parameter needs its own
+        flight and render; the edge bias's two columns only move the observed outlines, so they
+        reuse the unmoved render. Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the
+        covariance skip them.
+        """
         n_extra = self._extra_count(model)
-        zero_extra = torch.zeros(n_extra, dtype=torch.float64)
+        n_effect = n_extra - 2  # the extras are the effects' parameters, then the edge bias's two
+        free = torch.nonzero(~self._frozen(model)[:14]).flatten()
+        zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
         with torch.no_grad():
-            state = torch.cat((torch.zeros(1, 14, dtype=torch.float64), step * torch.eye(14, dtype=torch.float64)))
+            state = torch.zeros(1 + len(free), 14, dtype=torch.float64)
+            state[1 + torch.arange(len(free)), free] = step
             cands, effects, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            rows = self._vector(cands, effects, edge, mask)  # (15, N)
+            fitted = self._fitted_moments(cands, effects)
+            rows = self._vector_of(fitted, edge, mask)  # (1 + F, N)
             base = rows[0]
-            columns = [(rows[1:] - base) / step]
+            jac = base.new_zeros(len(base), 14 + n_extra)
+            jac[:, free.to(jac.device)] = ((rows[1:] - base) / step).T
+            unmoved = tuple(m[:1] for m in fitted)
             for j in range(n_extra):
                 shifted = zero_extra.clone()
                 shifted[j] = step
-                cands, effects, edge = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
-                columns.append(((self._vector(cands, effects, edge, mask)[0] - base) / step)[None])
-        jac = torch.cat(columns).T.double()
-        jac[:, self._frozen(model).to(jac.device)] = 0.0  # held fixed: LM steps and the covariance skip them
-        return base.double(), jac
+                cands, effects, edge = self._build(model, zero_state, shifted)
+                moved = self._vector(cands, effects, edge, mask) if j < n_effect else self._vector_of(unmoved, edge, mask)
+                jac[:, 14 + j] = (moved[0] - base) / step
+        return base.double(), jac.double()
 
     @staticmethod
     def _cost(resid: Tensor) -> float:
