@@ -691,11 +691,10 @@ class VideoProblem:
         does that. Outliers are left out of every model's criterion and listed in the report.
         """
         with torch.no_grad():
-            axes = self._fitted_moments(model.cands, self.effects(model.values))[2][0]
-        masks = self.problem.masks.cpu().numpy() > 0.5
-        self.edge_table = _edge_moments(masks, axes.cpu()).to(self.problem.masks.device)
-        self.noise = {name: 1.0 for name in CHANNELS}
-        channels = self.residuals(model)
+            fitted = self._fitted_moments(model.cands, self.effects(model.values))
+            masks = self.problem.masks.cpu().numpy() > 0.5
+            self.edge_table = _edge_moments(masks, fitted[2][0].cpu()).to(self.problem.masks.device)
+            channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.edge).items()}
         used = self.problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
         outliers = np.zeros_like(used)
