@@ -246,3 +246,18 @@ def test_concealed_verdict_is_right_only_when_exactly_the_hidden_effects_are_nam
     assert counts["heldout_halved"] == [1, 1]  # 2.0 -> 1.0 px
     assert counts["coefficients_within_25pc"] == [1, 1]  # C_d 0.5 fitted, 0.5 true
     assert "Right verdict on 1 of 3 effect cases; controls quiet 1 of 2" in conc.score_line(counts)
+
+
+def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the_truth():
+    """A recording counts as below its exact-mask detection limit only when the exact masks miss
+    it and each parameter's limit there is larger than its true departure from the null."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    weak = {"quadratic_drag": {"drag_coefficient": 0.2}}  # limit 0.3 in _content
+    strong = {"quadratic_drag": {"drag_coefficient": 0.5}}
+    assert conc.below_exact_limit(conc.row("drag_x", _content([], weak)))
+    assert not conc.below_exact_limit(conc.row("drag_x", _content([], strong)))  # missed, yet above its limit
+    assert not conc.below_exact_limit(conc.row("drag_x", _content(["quadratic_drag"], weak)))  # named
+    assert not conc.below_exact_limit(conc.row("control_x", _content([], {})))
+    clock = conc.row("time_x", _content([], {"time_scale": {"time_scale": 1.005}}))  # limit 0.01 on 0.005
+    assert conc.below_exact_limit(clock)

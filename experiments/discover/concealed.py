@@ -7,6 +7,7 @@
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
     python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
+    python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
 experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
@@ -176,6 +177,67 @@ def score_line(counts: dict) -> str:
             f"{part(counts['coefficients_within_25pc'])}; baseline IoU >= 0.9 on {part(counts['concealed'])}.")
 
 
+SETS = {"first": "concealed", "fresh 1": "concealed_fresh1", "fresh 2": "concealed_fresh2"}
+
+
+def below_exact_limit(exact: dict) -> bool:
+    """Whether a recording's hidden effect is below what its clip can show even on the engine's
+    exact masks: not named there, and every (scalar) parameter's detection limit there
+    (``detectable_above``) larger than its true departure from the null. ``exact`` is the
+    recording's :func:`row` from a ``--true-masks`` run. Vector parameters (an offset) are
+    never called below the limit."""
+    if exact["right"] or not exact["truth"]:
+        return False
+    below = []
+    for effect in exact["truth"]:
+        for pname, limit in exact["detectable_above"].get(effect, {}).items():
+            true, null = exact["truth_effects"][effect][pname], EFFECTS[effect].null_params[pname]
+            if isinstance(limit, list) or isinstance(true, list):
+                return False
+            below.append(limit > abs(true - null))
+    return bool(below) and all(below)
+
+
+def scoreboard() -> str:
+    """The targets per set and over all sets, on the segmented video and on the exact masks, and
+    again over only the recordings whose hidden effect is above its exact-mask detection limit
+    (:func:`below_exact_limit`); from the stored summary.json of each run (no fitting)."""
+    root = OUT.parent
+    lines = ["| set | masks | right | controls quiet | wrong names | held-out halved | coefficients within 25 % "
+             "| right, effect above its exact-mask limit |", "|---|---|---|---|---|---|---|---|"]
+    totals: dict = {}
+    for label, name in SETS.items():
+        exact_file = root / f"{name}_true_masks" / "summary.json"
+        exact = {r["recording"]: r for r in json.loads(exact_file.read_text())} if exact_file.exists() else {}
+        below = sorted(n for n, r in exact.items() if below_exact_limit(r))
+        for masks, folder in (("segmented", name), ("exact", f"{name}_true_masks")):
+            file = root / folder / "summary.json"
+            if not file.exists():
+                continue
+            rows = json.loads(file.read_text())
+            counts = score(rows)
+            above = [r for r in rows if r["truth"] and r["recording"] not in below and r["recording"] in exact]
+            counts["above_limit"] = [sum(r["right"] for r in above), len(above)]
+            total = totals.setdefault(masks, {})
+            for key, value in counts.items():
+                total[key] = total.get(key, []) + value if key == "wrong_names" else \
+                    [a + b for a, b in zip(total.get(key, [0, 0]), value)]
+            lines.append(_board_row(label, masks, counts))
+        if below:
+            lines.append(f"| {label} | below the exact-mask limit | {', '.join(below)} | | | | | |")
+    for masks, counts in totals.items():
+        lines.append(_board_row("**all**", masks, counts))
+    return "\n".join(lines)
+
+
+def _board_row(label: str, masks: str, counts: dict) -> str:
+    def part(pair):
+        return f"{pair[0]} of {pair[1]}"
+    return (f"| {label} | {masks} | {part(counts['effect_right'])} | {part(counts['controls_quiet'])} | "
+            f"{', '.join(counts['wrong_names']) or 'none'} | {part(counts['heldout_halved'])} | "
+            f"{part(counts['coefficients_within_25pc'])} | {part(counts['above_limit'])} |")
+
+
 def _current_edge(r: dict) -> bool:
     """Whether the row ran with today's edge nuisance (discover.json names its form; earlier runs did not)."""
     return r.get("edge_px", {}).get("form") == EDGE_FORM
@@ -273,7 +335,13 @@ if __name__ == "__main__":
     ap.add_argument("--shipped", action="store_true", help="the shipped recordings (hide nothing)")
     ap.add_argument("--fresh", type=int, default=0, metavar="K", help="fresh set K (make_concealed.py --fresh K)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
+    ap.add_argument("--scoreboard", action="store_true",
+                    help="the targets over every stored set, segmented and exact masks (results/scoreboard.md)")
     args = ap.parse_args()
+    if args.scoreboard:
+        board = scoreboard()
+        (OUT.parent / "scoreboard.md").write_text(board + "\n")
+        sys.exit(print(board))
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare)
