@@ -1,0 +1,149 @@
+"""Diagnostics behind the discover README's section *The exact masks of fresh set 2, and the scoreboard*.
+
+    python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~10 s each
+    python experiments/discover/diagnose.py clock SET NAME             # the clock refit from other starts, ~3 min
+    python experiments/discover/diagnose.py stall SET NAME EFFECT      # is the baseline stalled? ~4 min
+    python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the column-by-column one, ~2 min
+
+SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
+Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from edge_bias import outline
+from true_masks import load_problem
+
+import torchfit.discover_video as dv
+from torchfit.camera import Camera
+from torchfit.shape import load_shape
+from torchfit.video import load_observation
+
+HERE = Path(__file__).resolve().parent
+
+
+def _video(folder: Path) -> dv.VideoProblem:
+    truth = json.loads((folder / "truth.json").read_text())
+    shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
+    _, problem, _ = load_problem(folder, shape, Camera.from_file(folder / "camera.json"), False)
+    return dv.VideoProblem(problem)
+
+
+def segmentation(folder: Path) -> dict:
+    """Per frame: the segmented mask's centroid minus the true one's (px) and its edge bias (area
+    difference over the true outline's length, px)."""
+    observation = load_observation(str(folder / "video.mp4"), camera=Camera.from_file(folder / "camera.json"))
+    segmented, true = observation.masks.astype(bool), np.load(folder / "masks.npz")["masks"].astype(bool)
+    lengths = outline(true).sum((1, 2))
+    dx, dy, edge = [], [], []
+    for t in range(len(true)):
+        ys, xs = np.nonzero(segmented[t])
+        yt, xt = np.nonzero(true[t])
+        dx.append(float(xs.mean() - xt.mean()))
+        dy.append(float(ys.mean() - yt.mean()))
+        edge.append(float((segmented[t].sum() - true[t].sum()) / lengths[t]))
+    return {"dx_px": dx, "dy_px": dy, "edge_px": edge, "edge_mean": float(np.mean(edge)), "edge_sd": float(np.std(edge))}
+
+
+def clock(folder: Path, starts=(1.0135, 1.02)) -> dict:
+    """The baseline, discover's clock refit, and LM (30 iterations) from other clock starts."""
+    video = _video(folder)
+    base = video.fit((), None)
+    refit = video.fit(("time_scale",), base)
+    every = video.problem.used.cpu().numpy().astype(bool)
+    out = {"baseline_rss": base.rss, "baseline_edge": list(base.payload["model"].edge),
+           "refit_rss": refit.rss, "refit_clock": refit.params["time_scale"]["time_scale"],
+           "refit_edge": list(refit.payload["model"].edge), "starts": {}}
+    for start_clock in starts:
+        start = video._extend(base.payload["model"], ("time_scale",))
+        start.values["time_scale"]["time_scale"] = torch.tensor(start_clock, dtype=torch.float64)
+        model, resid, _ = video._lm(start, every, 30)
+        out["starts"][start_clock] = {"cost": video._cost(resid), "edge": list(model.edge),
+                                      "clock": float(model.values["time_scale"]["time_scale"])}
+    return out
+
+
+def stall(folder: Path, effect: str) -> dict:
+    """Whether the baseline is where LM stops: its cost after 75 more iterations, and the cost the
+    baseline model reaches from ``effect``'s refit with that effect removed (45 iterations)."""
+    video = _video(folder)
+    base = video.fit((), None)
+    every = video.problem.used.cpu().numpy().astype(bool)
+    model, resid, _ = video._lm(base.payload["model"], every, 75)
+    refit = video.fit((effect,), base)
+    point = refit.payload["model"]
+    _, from_refit, _ = video._lm(dv._Model(point.cands, {}, point.edge), every, 45)
+    return {"baseline_rss": base.rss, "after_75_more": video._cost(resid), "refit_rss": refit.rss,
+            "refit_wald": refit.wald, "from_refit_without_effect": video._cost(from_refit)}
+
+
+def _column_by_column(video: dv.VideoProblem, model, mask: torch.Tensor, step: float = 1e-3) -> torch.Tensor:
+    """The Jacobian as the code before ``0939874`` computed it: all 14 state columns in one batch,
+    then each extra column (effect parameters and edge terms) by its own flight and render, then
+    the held-fixed columns zeroed."""
+    n_extra = video._extra_count(model)
+    zero = torch.zeros(n_extra, dtype=torch.float64)
+    with torch.no_grad():
+        state = torch.cat((torch.zeros(1, 14, dtype=torch.float64), step * torch.eye(14, dtype=torch.float64)))
+        rows = video._vector(*video._build(model, state, zero), mask)
+        columns = [(rows[1:] - rows[0]) / step]
+        for j in range(n_extra):
+            shifted = zero.clone()
+            shifted[j] = step
+            moved = video._vector(*video._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted), mask)[0]
+            columns.append(((moved - rows[0]) / step)[None])
+    jac = torch.cat(columns).T.double()
+    jac[:, video._frozen(model)] = 0.0
+    return jac
+
+
+def jacobian(folder: Path, repeats: int = 3) -> dict:
+    """Seconds per Jacobian, column by column (the code before) and as discover computes it, side by
+    side at the recording's baseline with no effect and with one of three effects added."""
+    video = _video(folder)
+    base = video.fit((), None)
+    mask = video.problem.used
+    out = {}
+    for effects in ((), ("quadratic_drag",), ("com_offset",), ("lens_distortion",)):
+        model = video._extend(base.payload["model"], effects)
+        seconds = {"column_by_column": [], "discover": []}
+        for _ in range(2):  # two rounds, best of each
+            for label, fn in (("column_by_column", lambda: _column_by_column(video, model, mask)),
+                              ("discover", lambda: video._jacobian(model, mask)[1])):
+                clock_ = time.perf_counter()
+                for _ in range(repeats):
+                    jac = fn()
+                seconds[label].append((time.perf_counter() - clock_) / repeats)
+                out.setdefault("+".join(effects) or "baseline", {})[label + "_jacobian"] = jac
+        entry = out["+".join(effects) or "baseline"]
+        a, b = entry.pop("column_by_column_jacobian"), entry.pop("discover_jacobian")
+        entry.update(column_by_column_s=min(seconds["column_by_column"]), discover_s=min(seconds["discover"]),
+                     max_abs_difference=float((a - b).abs().max()), max_abs_entry=float(a.abs().max()))
+        entry["ratio"] = entry["column_by_column_s"] / entry["discover_s"]
+    return out
+
+
+def main(argv: list[str]) -> None:
+    commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian}
+    if len(argv) < 3 or argv[0] not in commands:
+        sys.exit(__doc__)
+    command, folder = argv[0], HERE / argv[1]
+    names = argv[2:] if command == "segmentation" else argv[2:3]
+    for name in names:
+        if not (folder / name / "truth.json").exists():
+            sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
+        result = commands[command](folder / name, *([] if command == "segmentation" else argv[3:]))
+        print(f"== {command} {argv[1]}/{name}")
+        print(json.dumps(result, indent=1, default=float))
+        (HERE / "results" / f"diagnose_{command}_{argv[1]}_{name}.json").write_text(json.dumps(result, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
