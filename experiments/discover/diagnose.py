@@ -1,6 +1,6 @@
 """Diagnostics behind the discover README's section *The exact masks of fresh set 2, and the scoreboard*.
 
-    python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~10 s each
+    python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~1 min each
     python experiments/discover/diagnose.py clock SET NAME             # the clock refit from other starts, ~3 min
     python experiments/discover/diagnose.py stall SET NAME EFFECT      # is the baseline stalled? ~4 min
     python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the column-by-column one, ~2 min
@@ -18,13 +18,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from edge_bias import outline
+from segmentation_error import measure
 from true_masks import load_problem
 
 import torchfit.discover_video as dv
 from torchfit.camera import Camera
 from torchfit.shape import load_shape
-from torchfit.video import load_observation
 
 HERE = Path(__file__).resolve().parent
 
@@ -37,19 +36,12 @@ def _video(folder: Path) -> dv.VideoProblem:
 
 
 def segmentation(folder: Path) -> dict:
-    """Per frame: the segmented mask's centroid minus the true one's (px) and its edge bias (area
-    difference over the true outline's length, px)."""
-    observation = load_observation(str(folder / "video.mp4"), camera=Camera.from_file(folder / "camera.json"))
-    segmented, true = observation.masks.astype(bool), np.load(folder / "masks.npz")["masks"].astype(bool)
-    lengths = outline(true).sum((1, 2))
-    dx, dy, edge = [], [], []
-    for t in range(len(true)):
-        ys, xs = np.nonzero(segmented[t])
-        yt, xt = np.nonzero(true[t])
-        dx.append(float(xs.mean() - xt.mean()))
-        dy.append(float(ys.mean() - yt.mean()))
-        edge.append(float((segmented[t].sum() - true[t].sum()) / lengths[t]))
-    return {"dx_px": dx, "dy_px": dy, "edge_px": edge, "edge_mean": float(np.mean(edge)), "edge_sd": float(np.std(edge))}
+    """Per frame: the segmented mask's centroid minus the true one's (px) and its edge bias
+    (:func:`segmentation_error.measure`), with the edge bias's mean and spread."""
+    frames = measure(folder)["frames"]
+    edge = [r["edge_px"] for r in frames]
+    return {"dx_px": [r["dx"] for r in frames], "dy_px": [r["dy"] for r in frames], "edge_px": edge,
+            "edge_mean": float(np.mean(edge)), "edge_sd": float(np.std(edge))}
 
 
 def clock(folder: Path, starts=(1.0135, 1.02)) -> dict:
