@@ -369,7 +369,8 @@ def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch)
 def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_it():
     """The criterion's count: a sphere's orientation and spin (6 of the state's 14) are unseen, so
     the baseline is charged 14 + 2 (edge) - 6; Magnus lift is charged the three numbers of C_L w
-    and an offset centre of mass its three plus the spin's. A box is charged every parameter.
+    and an offset centre of mass its three plus the spin's; with both, the spin is charged once
+    (17, not 19). A box is charged every parameter.
     The refits hold the unseen columns fixed: a Levenberg-Marquardt run on the sphere moves its
     position but not its orientation or spin."""
     import torchfit.discover_video as dv
@@ -381,7 +382,8 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
         video = dv.VideoProblem(problem)
         model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
         counts[name] = {effects: video._free_count(video._extend(model, effects))
-                        for effects in ((), ("quadratic_drag",), ("magnus",), ("com_offset",))}
+                        for effects in ((), ("quadratic_drag",), ("magnus",), ("com_offset",),
+                                        ("magnus", "com_offset"))}
         if name == "ball":
             frozen = {effects: int(video._frozen(video._extend(model, effects)).sum())
                       for effects in ((), ("magnus",), ("com_offset",))}
@@ -390,8 +392,10 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
             moved.cands.com[:] += torch.tensor([0.004, -0.003, 0.01], dtype=F64)
             moved.cands.delta[:] += 0.05
             after, _, _ = video._lm(moved, video.problem.used.cpu().numpy(), 3)
-    assert counts["ball"] == {(): 10, ("quadratic_drag",): 11, ("magnus",): 13, ("com_offset",): 16}
-    assert counts["box"] == {(): 16, ("quadratic_drag",): 17, ("magnus",): 17, ("com_offset",): 19}
+    assert counts["ball"] == {(): 10, ("quadratic_drag",): 11, ("magnus",): 13, ("com_offset",): 16,
+                              ("magnus", "com_offset"): 17}
+    assert counts["box"] == {(): 16, ("quadratic_drag",): 17, ("magnus",): 17, ("com_offset",): 19,
+                             ("magnus", "com_offset"): 20}
     assert frozen == {(): 6, ("magnus",): 3, ("com_offset",): 3}
     assert float((after.cands.com - moved.cands.com).norm()) > 1e-3
     assert torch.allclose(after.cands.quat(), moved.cands.quat(), atol=1e-12, rtol=0)

@@ -44,7 +44,7 @@ from .discover import (
     wald_statistic,
 )
 from .dynamics import RigidBody, integrate
-from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect
+from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect, revealed
 from .losses import mask_moments
 from .render import RenderMesh, crop_windows, full_window, render_silhouettes
 from .residuals import (
@@ -452,9 +452,10 @@ class VideoProblem:
         a sphere's hidden orientation and spin that none of the model's effects reveals
         (:attr:`torchfit.effects.Effect.reveals`). Counting all 14 charged a sphere's Magnus lift
         for one parameter while it fits the three of ``C_L ω`` (fresh drag_light_ball: Magnus
-        ΔBIC 61.2 in one run, 12.1 in another, against drag's 69.3)."""
-        revealed = sum(EFFECTS[name].reveals for name in model.values)
-        return 14 + self._extra_count(model) - max(self.hidden - revealed, 0)
+        ΔBIC 61.2 in one run, 12.1 in another, against drag's 69.3). Magnus lift with an offset
+        centre of mass sees the spin once (:func:`torchfit.effects.revealed`)."""
+        seen = revealed(list(model.values)) if self.hidden else 0
+        return 14 + self._extra_count(model) - (self.hidden - seen)
 
     def _frozen(self, model: _Model) -> Tensor:
         """(14 + P + 2,) True for the columns the refits hold fixed: a sphere's orientation, and its
@@ -464,7 +465,7 @@ class VideoProblem:
         frozen = torch.zeros(14 + self._extra_count(model), dtype=torch.bool)
         if not self.hidden:
             return frozen
-        held = {"delta"} | (set() if any(EFFECTS[name].reveals for name in model.values) else {"omega"})
+        held = {"delta"} | (set() if revealed(list(model.values)) else {"omega"})
         offset = 0
         for name in SCALES:  # the state's columns, as _build lays them out
             size = getattr(model.cands, name).shape[1]

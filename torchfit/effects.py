@@ -49,6 +49,7 @@ __all__ = [
     "apply_effects",
     "lens_model",
     "make_effect",
+    "revealed",
     "split_effects",
 ]
 
@@ -87,8 +88,8 @@ class Effect(nn.Module):
     (parameter -> (low, high) the physics allows: a fit outside says the effect is standing in for
     something else), ``reveals`` (how many of a sphere's six hidden state components, its
     orientation and spin, which no silhouette shows, the effect makes the motion depend on beyond
-    what its own parameters already count: free parameters a fit on a sphere gains with it; exact
-    for one effect, an upper bound summed over several, tests/test_effects.py).
+    what its own parameters already count: free parameters a fit on a sphere gains with it; for a
+    model of several effects, :func:`revealed`).
     """
 
     name: str = ""
@@ -428,6 +429,26 @@ def make_effect(name: str, *, area: float, **params) -> Effect:
         return cls(area=area, **params)
     except TypeError as err:
         raise ValueError(f"bad parameters for effect {name!r}: {err}") from None
+
+
+SPIN_COMPONENTS = 3  # of a sphere's six hidden state numbers, the refits ever free only the spin
+
+
+def revealed(names: Sequence[str]) -> int:
+    """How many of a sphere's hidden state numbers a model with these effects sees.
+
+    Each effect's ``reveals`` is exact alone. Together they see the spin once: Magnus lift
+    (``C_L ω``, 2 beyond ``C_L``) with an offset centre of mass (the spin's 3, from the wobble)
+    sees the spin's 3 and ``C_L`` apart from it, not 2 + 3 (rank of a sphere's centre track,
+    tests/test_effects.py). The orientation is never seen beyond the effects' own parameters.
+
+    Args:
+        names: effect names, each in ``EFFECTS``.
+
+    Returns:
+        ``min(sum of reveals, 3)``.
+    """
+    return min(sum(EFFECTS[name].reveals for name in names), SPIN_COMPONENTS)
 
 
 def split_effects(effects: Sequence[Effect]) -> dict[str, list[Effect]]:
