@@ -261,3 +261,38 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     assert not conc.below_exact_limit(conc.row("control_x", _content([], {})))
     clock = conc.row("time_x", _content([], {"time_scale": {"time_scale": 1.005}}))  # limit 0.01 on 0.005
     assert conc.below_exact_limit(clock)
+
+
+def test_rule_tally_counts_only_what_one_test_alone_kept_out_of_its_round(tmp_path):
+    """A candidate counts against a test when it fails that test only and would have changed its
+    round: nothing passed there, or its ΔBIC is within the look-alike margin of the winner's or
+    above it. Right when its effect is the hidden one."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+
+    def cand(base, dbic, fails):
+        return {"base": base, "delta_bic": dbic, "fails": fails, "passes": not fails}
+
+    runs = {
+        # the hidden drag kept out by the held-out test alone, nothing passed: right, counted
+        "drag_a": ({"quadratic_drag": {}}, {"quadratic_drag": [cand([], 23.7, ["heldout"])],
+                                            "time_scale": [cand([], 18.0, ["heldout", "wald"])]}),
+        # a clock kept out by Wald alone, 5 below the passing drag's ΔBIC: wrong, counted
+        "drag_b": ({"quadratic_drag": {}}, {"quadratic_drag": [cand([], 30.0, [])],
+                                            "time_scale": [cand([], 25.0, ["wald"]),
+                                                           cand(["quadratic_drag"], 4.0, ["delta_bic", "wald"])]}),
+        # a second-round offset 30 below that round's winner: not counted
+        "drag_c": ({"quadratic_drag": {}}, {"quadratic_drag": [cand([], 60.0, [])],
+                                            "com_offset": [cand([], 30.0, ["evidence_spread"])]}),
+    }
+    for name, (truth, effects) in runs.items():
+        (tmp_path / "concealed" / name).mkdir(parents=True)
+        content = {"truth_effects": truth, "effects": effects}
+        (tmp_path / "concealed" / name / "discover.json").write_text(json.dumps(content))
+    tally = conc.rule_tally(tmp_path)
+    seg = tally["segmented"]
+    assert seg["heldout"] == {"right": ["first/drag_a: quadratic_drag ΔBIC 23.7"], "wrong": []}
+    assert seg["wald"] == {"right": [], "wrong": ["first/drag_b: time_scale ΔBIC 25.0"]}
+    assert seg["evidence_spread"] == {"right": [], "wrong": []}
+    assert all(kept == {"right": [], "wrong": []} for kept in tally["exact"].values())
+    assert "| segmented | heldout | 1: first/drag_a: quadratic_drag ΔBIC 23.7 | 0 |" in conc.rules_text(tally)

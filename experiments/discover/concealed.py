@@ -8,6 +8,7 @@
     python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
+    python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
 experiments/discover/results/concealed/<name>/ (discover.json, residuals.png, report.txt); the
@@ -230,6 +231,54 @@ def scoreboard() -> str:
     return "\n".join(lines)
 
 
+RULES = ("unphysical", "evidence_spread", "heldout", "wald")  # the tests besides the ΔBIC threshold
+
+
+def rule_tally(root: Path = OUT.parent) -> dict:
+    """What each test alone kept out, over every stored set: the candidates that pass the ΔBIC
+    threshold and fail only that test, and would have changed their round (no candidate passed
+    it, or theirs is within the look-alike margin of the winner's ΔBIC or above it).
+
+    Returns ``{masks: {rule: {"right": [...], "wrong": [...]}}}``, each entry
+    ``"set/recording: effect (after base) ΔBIC x"``; ``right`` when the effect is hidden there.
+    From the stored discover.json files (no fitting). Counterfactual for that round only: what
+    later rounds would have done is not known."""
+    margin = VIDEO_SELECTION.lookalike_margin
+    out: dict = {}
+    for label, name in SETS.items():
+        for masks, folder in (("segmented", name), ("exact", f"{name}_true_masks")):
+            tally = out.setdefault(masks, {rule: {"right": [], "wrong": []} for rule in RULES})
+            for file in sorted((root / folder).glob("*/discover.json")):
+                content = json.loads(file.read_text())
+                truth = set(content.get("truth_effects") or {})
+                rounds: dict = {}
+                for effect, scores in content["effects"].items():
+                    for sc in scores:
+                        rounds.setdefault(tuple(sc["base"]), []).append((effect, sc))
+                for base, scores in rounds.items():
+                    passing = [sc["delta_bic"] for _, sc in scores if sc["passes"]]
+                    best = max(passing, default=None)
+                    for effect, sc in scores:
+                        if len(sc["fails"]) != 1 or sc["fails"][0] not in RULES:
+                            continue
+                        if best is not None and sc["delta_bic"] < best - margin:
+                            continue
+                        after = f" after {'+'.join(base)}" if base else ""
+                        entry = f"{label}/{file.parent.name}: {effect}{after} ΔBIC {sc['delta_bic']:.1f}"
+                        tally[sc["fails"][0]]["right" if effect in truth else "wrong"].append(entry)
+    return out
+
+
+def rules_text(tally: dict) -> str:
+    lines = ["| masks | test | right names it alone kept out | wrong names it alone kept out |", "|---|---|---|---|"]
+    for masks, rules in tally.items():
+        for rule, kept in rules.items():
+            def cell(entries):
+                return f"{len(entries)}: " + "; ".join(entries) if entries else "0"
+            lines.append(f"| {masks} | {rule} | {cell(kept['right'])} | {cell(kept['wrong'])} |")
+    return "\n".join(lines)
+
+
 def _board_row(label: str, masks: str, counts: dict) -> str:
     def part(pair):
         return f"{pair[0]} of {pair[1]}"
@@ -337,7 +386,13 @@ if __name__ == "__main__":
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md)")
+    ap.add_argument("--rules", action="store_true",
+                    help="what each test alone kept out over every stored set (results/rules.md)")
     args = ap.parse_args()
+    if args.rules:
+        text = rules_text(rule_tally())
+        (OUT.parent / "rules.md").write_text(text + "\n")
+        sys.exit(print(text))
     if args.scoreboard:
         board = scoreboard()
         (OUT.parent / "scoreboard.md").write_text(board + "\n")

@@ -1,9 +1,12 @@
-"""Diagnostics behind the discover README's section *The exact masks of fresh set 2, and the scoreboard*.
+"""Diagnostics behind the discover README's sections *The exact masks of fresh set 2, and the
+scoreboard* and *What limits the video: three checks*.
 
     python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~1 min each
     python experiments/discover/diagnose.py clock SET NAME             # the clock refit from other starts, ~3 min
     python experiments/discover/diagnose.py stall SET NAME EFFECT      # is the baseline stalled? ~4 min
     python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the column-by-column one, ~2 min
+    python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
+    python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json.
@@ -122,16 +125,90 @@ def jacobian(folder: Path, repeats: int = 3) -> dict:
     return out
 
 
+def coverage(folder: Path) -> dict:
+    """The five channels of the segmented mask, and of its soft coverage (the segmentation's
+    per-pixel estimate before the 0.5 threshold, clipped to [0, 1], within 4 px of the mask),
+    against the true mask's: mean, RMS about the mean and frame-to-frame jitter (second
+    differences / sqrt 6) of each, over all frames. Would moments of the coverage be less noisy?"""
+    from scipy import ndimage
+
+    from torchfit import video
+    from torchfit.losses import mask_moments
+    from torchfit.residuals import channel_values
+
+    kept = []
+    original = video._local_shading_coverage  # called once per frame, before smoothing and threshold
+
+    def recording(*args):
+        kept.append(original(*args))
+        return kept[-1]
+
+    frames, _ = video._read_video(folder / "video.mp4", 0, None)
+    video._local_shading_coverage = recording
+    try:
+        masks = video._segment(frames, video.SegmentationSettings())["masks"]
+    finally:
+        video._local_shading_coverage = original
+    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    near = np.stack([ndimage.binary_dilation(m, iterations=4) for m in masks])
+    truth = mask_moments(torch.as_tensor(true, dtype=torch.float64))
+    out = {}
+    for label, observed in (("mask", masks), ("coverage", np.clip(np.stack(kept), 0, 1) * near)):
+        values = channel_values(mask_moments(torch.as_tensor(observed, dtype=torch.float64)), truth)
+        out[label] = {k: {"mean": float(np.mean(v.numpy())), "rms": float(np.std(v.numpy())),
+                          "jitter": float(np.std(np.diff(v.numpy(), 2)) / np.sqrt(6))} for k, v in values.items()}
+    return out
+
+
+def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
+    """The held-out fit (all frames but the last quarter) of the baseline plus ``effect``: its
+    train cost and held-out centroid error as discover leaves it, after 40 more LM iterations,
+    from the all-frames optimum (which has seen the held-out frames: a start discover does not
+    use), and from the effect screened on the train frames alone. Then the same fits with the
+    ``scale`` channel's noise floor times ``scale_factor`` (is the size, i.e. the depth, what
+    misleads it?)."""
+    def run(factor: float) -> dict:
+        video = _video(folder)
+        if factor != 1.0:
+            original = video._set_noise
+
+            def patched(model, *args, **kwargs):
+                original(model, *args, **kwargs)
+                video.noise["scale"] *= factor
+            video._set_noise = patched
+        base = video.fit((), None)
+        refit = video.fit((effect,), base)
+        train = video.train
+
+        def summary(model, iterations: int) -> dict:
+            model, resid, _ = video._lm(model, train, iterations)
+            channels = video.residuals(model)
+            held = np.hypot(channels["centroid_x"], channels["centroid_y"])[video.held]
+            return {"train_cost": video._cost(resid), "heldout_px": float(np.sqrt(np.mean(held**2))),
+                    "params": {p: float(torch.as_tensor(v).reshape(-1)[0]) for p, v in model.values[effect].items()},
+                    "gravity_angles": model.cands.gravity_angles[0].tolist()}
+        _, screened = video._screen(video._extend(base.payload["held_model"], (effect,)), (effect,), train)
+        return {"all_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
+                               for p, v in refit.payload["model"].values[effect].items()},
+                "discover": summary(refit.payload["held_model"], 0),
+                "40_more": summary(refit.payload["held_model"], 40),
+                "from_all_frames_optimum": summary(refit.payload["model"], 15),
+                "screened_on_train": summary(screened, 15)}
+    return {"noise_as_is": run(1.0), f"scale_noise_times_{scale_factor}": run(float(scale_factor))}
+
+
 def main(argv: list[str]) -> None:
-    commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian}
+    commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
+                "coverage": coverage, "heldout": heldout}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    names = argv[2:] if command == "segmentation" else argv[2:3]
+    several = command in ("segmentation", "coverage")
+    names = argv[2:] if several else argv[2:3]
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
-        result = commands[command](folder / name, *([] if command == "segmentation" else argv[3:]))
+        result = commands[command](folder / name, *([] if several else argv[3:]))
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
         (HERE / "results" / f"diagnose_{command}_{argv[1]}_{name}.json").write_text(json.dumps(result, indent=1, default=float))
