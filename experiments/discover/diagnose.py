@@ -1,5 +1,5 @@
 """Diagnostics behind the discover README's sections *The exact masks of fresh set 2, and the
-scoreboard* and *What limits the video: three checks*.
+scoreboard* and *What limits the video: four checks*.
 
     python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~1 min each
     python experiments/discover/diagnose.py clock SET NAME             # the clock refit from other starts, ~3 min
