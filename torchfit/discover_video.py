@@ -508,9 +508,11 @@ class VideoProblem:
         """Sum of squares of (N,) residuals, a non-finite one counting 1e3 (a frame left the view)."""
         return float(torch.nan_to_num(resid, nan=1e3).square().sum())
 
-    def _lm(self, model: _Model, mask: np.ndarray, iterations: int) -> tuple[_Model, Tensor, Tensor]:
+    def _lm(self, model: _Model, mask: np.ndarray, iterations: int,
+            tolerance: float = 1e-5) -> tuple[_Model, Tensor, Tensor]:
         """Levenberg-Marquardt from ``model`` on the frames in ``mask``; returns the model, the
-        residual and the Jacobian at it."""
+        residual and the Jacobian at it. Stops early when no step lowers the cost, or when an
+        accepted one lowers it by less than ``tolerance`` of itself."""
         mask_t = torch.as_tensor(mask, device=self.problem.masks.device) & self.problem.used
         resid, jac = self._jacobian(model, mask_t)
         cost = self._cost(resid)
@@ -547,7 +549,7 @@ class VideoProblem:
             decrease = (cost - trial_cost) / max(cost, 1e-12)
             cost = trial_cost
             resid, jac = self._jacobian(model, mask_t)
-            if decrease < 1e-5:
+            if decrease < tolerance:
                 break
         return model, resid, jac
 
