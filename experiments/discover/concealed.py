@@ -270,11 +270,12 @@ def rule_tally(root: Path = OUT.parent) -> dict:
 
 
 def rules_text(tally: dict) -> str:
+    def cell(entries):
+        return f"{len(entries)}: " + "; ".join(entries) if entries else "0"
+
     lines = ["| masks | test | right names it alone kept out | wrong names it alone kept out |", "|---|---|---|---|"]
     for masks, rules in tally.items():
         for rule, kept in rules.items():
-            def cell(entries):
-                return f"{len(entries)}: " + "; ".join(entries) if entries else "0"
             lines.append(f"| {masks} | {rule} | {cell(kept['right'])} | {cell(kept['wrong'])} |")
     return "\n".join(lines)
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from segmentation_error import measure
+from segmentation_error import measure, segment_watching
 from true_masks import load_problem
 
 import torchfit.discover_video as dv
@@ -132,24 +132,11 @@ def coverage(folder: Path) -> dict:
     differences / sqrt 6) of each, over all frames. Would moments of the coverage be less noisy?"""
     from scipy import ndimage
 
-    from torchfit import video
     from torchfit.losses import mask_moments
     from torchfit.residuals import channel_values
 
-    kept = []
-    original = video._local_shading_coverage  # called once per frame, before smoothing and threshold
-
-    def recording(*args):
-        kept.append(original(*args))
-        return kept[-1]
-
-    frames, _ = video._read_video(folder / "video.mp4", 0, None)
-    video._local_shading_coverage = recording
-    try:
-        masks = video._segment(frames, video.SegmentationSettings())["masks"]
-    finally:
-        video._local_shading_coverage = original
-    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    # the per-pixel coverage, before smoothing and threshold
+    masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage)
     near = np.stack([ndimage.binary_dilation(m, iterations=4) for m in masks])
     truth = mask_moments(torch.as_tensor(true, dtype=torch.float64))
     out = {}

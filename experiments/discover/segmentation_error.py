@@ -24,24 +24,42 @@ import torchfit.video as video
 HERE = Path(__file__).resolve().parent
 
 
-def measure(folder: Path) -> dict:
-    contrasts = []  # (H, W) |F - B| of each segmented frame, in the order _segment visits them
-    original = video._local_contrast  # called once per frame by the local-shading coverage
+def segment_watching(folder: Path, hook: str, keep) -> tuple[np.ndarray, list, np.ndarray]:
+    """Segment a concealed recording's video as torchfit does, watching one step of it.
+
+    Args:
+        folder: the recording (video.mp4, masks.npz).
+        hook: a function of :mod:`torchfit.video` that ``_segment`` calls once per frame
+            (``_local_contrast``, ``_local_shading_coverage``).
+        keep: what to keep of each call's result.
+
+    Returns:
+        (T, H, W) segmented masks, the T kept values (frame order), (T, H, W) true masks.
+    """
+    kept = []
+    original = getattr(video, hook)
 
     def recording(*args):
-        contrast, support = original(*args)
-        contrasts.append(np.linalg.norm(contrast, axis=-1))
-        return contrast, support
+        result = original(*args)
+        kept.append(keep(result))
+        return result
 
     frames, _ = video._read_video(folder / "video.mp4", 0, None)
-    video._local_contrast = recording
+    setattr(video, hook, recording)
     try:
         segmented = video._segment(frames, video.SegmentationSettings())["masks"]
     finally:
-        video._local_contrast = original
+        setattr(video, hook, original)
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
-    if len(contrasts) != len(true):
-        raise RuntimeError(f"{folder.name}: {len(contrasts)} segmented frames, {len(true)} true masks")
+    if len(kept) != len(true):
+        raise RuntimeError(f"{folder.name}: {len(kept)} segmented frames, {len(true)} true masks")
+    return segmented, kept, true
+
+
+def measure(folder: Path) -> dict:
+    # per frame |F - B| (H, W) along the outline, from the local-shading coverage's contrast fit
+    segmented, contrasts, true = segment_watching(
+        folder, "_local_contrast", lambda result: np.linalg.norm(result[0], axis=-1))
     outlines = outline(true)
     rows = []
     for t in range(len(true)):
