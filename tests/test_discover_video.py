@@ -338,6 +338,40 @@ def test_added_effect_starts_from_the_screened_start_nearest_the_data():
     assert wald["time_scale"] > 25
 
 
+def test_held_out_fit_sees_no_held_out_frame():
+    """The prediction's fit (held_model) of a model with a new effect uses no held-out frame, its
+    start included (the new effect is screened on the train frames): moving the held-out frames'
+    observed centroids by 3 px moves the all-frames fit and leaves the held-out fit as it was.
+    (That move makes the all-frames screening start the clock at 1.01 instead of 1.0: a held-out
+    start taken from it, as before, ended elsewhere.)"""
+    from types import SimpleNamespace
+
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
+    video = dv.VideoProblem(problem, candidates=("time_scale",))
+    base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(base)
+    warm = SimpleNamespace(payload={"model": base, "held_model": base})
+    clean = video.fit(("time_scale",), warm)
+    held = torch.as_tensor(video.held)
+    table = video.edge_table.clone()
+    table[:, :, held, 1] -= 3.0 * table[:, :, held, 0]  # m10 -= 3 m00: centroid x - 3 px
+    video.edge_table = table
+    moved = video.fit(("time_scale",), warm)
+
+    def clock(fit, which):
+        return float(fit.payload[which].values["time_scale"]["time_scale"])
+
+    assert abs(clock(moved, "model") - clock(clean, "model")) > 1e-4
+    assert clock(moved, "held_model") == clock(clean, "held_model")
+    for field in clean.payload["held_model"].cands.fields():
+        assert torch.equal(getattr(moved.payload["held_model"].cands, field),
+                           getattr(clean.payload["held_model"].cands, field))
+    assert moved.payload["held_model"].edge == clean.payload["held_model"].edge
+    assert moved.heldout_rms > clean.heldout_rms  # the moved frames are predicted worse
+
+
 def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch):
     """A trial step that takes a parameter out of its effect's domain (make_effect raises, e.g. a
     clock factor of -3e4 seen on a fresh concealed recording) is a refused step: more damping,

@@ -10,8 +10,10 @@ The baseline is torchfit's search from no guess. Every model is then fitted by L
 on exactly that chi-squared (float64; finite-difference Jacobian, the 14 state columns as one batch
 of candidates) — the fit minimises the criterion it is judged by — once on all used frames (the
 chi-squared and BIC) and once without the last ``holdout`` of them (the held-out prediction, where
-a missing force shows most). A model with one more effect starts from the model it extends with
-the new effect at its null value. Every model also fits the segmentation's edge bias (the observed
+a missing force shows most). A model with one more effect starts from the model it extends (its
+all-frames fit, or its held-out fit for the held-out one) with the new effect screened from its
+null value and one scale unit either side, on the frames that fit uses: the held-out fit sees no
+held-out frame after the baseline (whose held-out fit starts from the search, run on all frames). Every model also fits the segmentation's edge bias (the observed
 outlines moved by ``b0 + b1 e cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle
 to the baseline's fitted silhouette's major axis and ``e`` its elongation, with Gaussian priors of ``EDGE_PRIOR_PX``
 and ``EDGE_SHAPE_PRIOR_PX``): a mask a fraction of a pixel too small, or too fat and too short,
@@ -669,11 +671,13 @@ class VideoProblem:
             held_model, _, _ = self._lm(model, self.train, self.iterations)
         else:
             new = tuple(name for name in effects if name not in warm.payload["model"].values)
-            start, screened = self._screen(self._extend(warm.payload["model"], effects), new, everything)
+            _, screened = self._screen(self._extend(warm.payload["model"], effects), new, everything)
             model, resid, jac = self._lm(screened, everything, self.iterations)
-            held_start = self._extend(warm.payload["held_model"], effects)
-            held_start.values.update({name: start.values[name] for name in new})
-            held_model, _, _ = self._lm(held_start, self.train, self.iterations)
+            # the prediction's fit sees no held-out frame: the new effects are screened again,
+            # from the warm held-out fit, on the train frames alone (a start chosen on all
+            # frames could stall in another basin than the train frames' best, and did)
+            _, held_screened = self._screen(self._extend(warm.payload["held_model"], effects), new, self.train)
+            held_model, _, _ = self._lm(held_screened, self.train, self.iterations)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model)
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
