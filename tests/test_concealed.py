@@ -296,3 +296,14 @@ def test_rule_tally_counts_only_what_one_test_alone_kept_out_of_its_round(tmp_pa
     assert seg["evidence_spread"] == {"right": [], "wrong": []}
     assert all(kept == {"right": [], "wrong": []} for kept in tally["exact"].values())
     assert "| segmented | heldout | 1: first/drag_a: quadratic_drag ΔBIC 23.7 | 0 |" in conc.rules_text(tally)
+
+
+def test_round_gains_names_each_candidate_by_the_round_it_was_scored_in():
+    """--compare's held-out listing keys every candidate score by its round (the effects it adds
+    to) and gives the held-out gain in per cent."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    content = {"effects": {"magnus": [{"base": [], "delta_bic": 3.0, "heldout_gain": -0.5},
+                                      {"base": ["quadratic_drag"], "delta_bic": 11.8, "heldout_gain": 0.25}]}}
+    assert conc._round_gains(content) == {("baseline", "magnus"): (3.0, -50.0),
+                                          ("quadratic_drag", "magnus"): (11.8, 25.0)}

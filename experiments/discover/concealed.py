@@ -348,6 +348,35 @@ def compare(out: Path, revision: str) -> str:
     return "\n".join(lines)
 
 
+def _round_gains(content: dict) -> dict:
+    """``(round, candidate) -> (ΔBIC, held-out gain %)`` of every candidate scored in a
+    discover.json's ``effects``; a round is named by the effects it adds to."""
+    return {("+".join(score["base"]) or "baseline", name): (score["delta_bic"], 100 * score["heldout_gain"])
+            for name, scores in content["effects"].items() for score in scores}
+
+
+def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
+    """Markdown rows of the candidates (every round's) whose held-out gain moved by
+    at least ``points`` percentage points between git ``revision``'s discover.json and today's,
+    and how many such candidates were compared."""
+    root = HERE.parents[1]
+    lines = ["| recording | round: candidate | ΔBIC before -> now | held-out gain before -> now |", "|---|---|---|---|"]
+    compared = 0
+    for path in sorted(out.glob("*/discover.json")):
+        try:
+            old = json.loads(subprocess.check_output(["git", "show", f"{revision}:{path.relative_to(root).as_posix()}"],
+                                                     cwd=root, stderr=subprocess.DEVNULL))
+        except subprocess.CalledProcessError:
+            continue
+        before, now = _round_gains(old), _round_gains(json.loads(path.read_text()))
+        for key in before.keys() & now.keys():
+            compared += 1
+            if abs(before[key][1] - now[key][1]) >= points:
+                lines.append(f"| {path.parent.name} | {key[0]}: {key[1]} | {before[key][0]:.1f} -> {now[key][0]:.1f} | "
+                             f"{before[key][1]:+.0f} % -> {now[key][1]:+.0f} % |")
+    return "\n".join(lines + [f"\n{len(lines) - 2} of {compared} candidates' held-out gains moved by >= {points:g} points"])
+
+
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
@@ -359,7 +388,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         return print(rebuild(out, recordings))
     if against:
         rebuild(out, recordings)
-        return print(compare(out, against))
+        print(compare(out, against))
+        return print("\n" + heldout_moves(out, against))
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
     elif not recordings.exists():

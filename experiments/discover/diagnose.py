@@ -152,7 +152,8 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
     train cost and held-out centroid error as discover leaves it, after 40 more LM iterations
     (with LM's early stop on a relative decrease below 1e-5, and without it),
     from the all-frames optimum (which has seen the held-out frames: a start discover does not
-    use), and from the effect screened on the train frames alone. Then the same fits with the
+    use), and from the effect screened on the train frames alone (what discover itself does since
+    d572dc3; before, it screened the held-out fit's start on all frames). Then the same fits with the
     ``scale`` channel's noise floor times ``scale_factor`` (is the size, i.e. the depth, what
     misleads it?)."""
     def run(factor: float) -> dict:
