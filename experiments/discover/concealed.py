@@ -388,8 +388,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         return print(rebuild(out, recordings))
     if against:
         rebuild(out, recordings)
-        print(compare(out, against))
-        return print("\n" + heldout_moves(out, against))
+        return print(compare(out, against) + "\n\n" + heldout_moves(out, against))
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
     elif not recordings.exists():
