@@ -17,8 +17,8 @@ held-out frame after the baseline (whose held-out fit starts from the search, ru
 frames). Every model also fits the segmentation's edge bias (the observed outlines moved by
 ``b0 + b1 e cos(2 phi)`` pixels along their normals, ``phi`` the normal's angle to the baseline's
 fitted silhouette's major axis and ``e`` its elongation, with Gaussian priors of
-``EDGE_PRIOR_PX`` and ``EDGE_SHAPE_PRIOR_PX``): a mask a fraction of a pixel too small, or too fat and too short,
-otherwise reads as a depth, and with it a frame-rate error.
+``EDGE_PRIOR_PX`` and ``EDGE_SHAPE_PRIOR_PX``): a mask a fraction of a pixel too small, or too
+fat and too short, otherwise reads as a depth, and with it a frame-rate error.
 Parameter uncertainties: Gauss-Newton at the optimum, inflated by the reduced chi-squared when it
 exceeds 1.
 """
