@@ -438,9 +438,10 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
 
 @pytest.mark.parametrize("ball", [False, True])
 def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
-    """The batched Jacobian (free state columns in one render, the edge bias's columns reusing the
-    unmoved render) equals the plain definition: move one scaled parameter by the step, recompute
-    the whole residual vector. A sphere's held-fixed orientation and spin columns are zero."""
+    """The batched Jacobian (free state columns and the force and body effects' parameters in one
+    render, the clock's by its own, the edge bias's columns reusing the unmoved render) equals the
+    plain definition: move one scaled parameter by the step, recompute the whole residual vector.
+    A sphere's held-fixed orientation columns are zero (its spin is seen through the offset)."""
     import torchfit.discover_video as dv
 
     shape = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0) if ball else None
@@ -448,9 +449,13 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
     video = dv.VideoProblem(problem)
     model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
     video._set_noise(model)
-    model = video._extend(dv._Model(model.cands, {}, (0.1, -0.05)), ("time_scale", "quadratic_drag"))
+    model = video._extend(dv._Model(model.cands, {}, (0.1, -0.05)), ("time_scale", "quadratic_drag", "com_offset"))
+    model.values["quadratic_drag"]["drag_coefficient"] = torch.tensor(0.4, dtype=F64)
+    model.values["com_offset"]["offset"] = torch.tensor([0.002, -0.001, 0.003], dtype=F64)
     mask = video.problem.used
     step = 1e-3
+    # the clock (extra 0) is stepped alone, drag's coefficient and the offset's three in the batch
+    assert video._stepped_values(model, 5, step)[1] == [1, 2, 3, 4]
     base, jac = video._jacobian(model, mask, step)
     n = 14 + video._extra_count(model)
     assert jac.shape == (len(base), n)
@@ -462,4 +467,4 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
             moved = video._vector(*video._build(model, state, extra), mask)[0]
             expected = torch.zeros_like(base) if frozen[column] else (moved - base) / step
             assert torch.allclose(jac[:, column], expected, rtol=1e-6, atol=1e-9), column
-    assert int(frozen.sum()) == (6 if ball else 0)  # neither effect reveals a sphere's orientation or spin
+    assert int(frozen.sum()) == (3 if ball else 0)  # the offset reveals a sphere's spin, none its orientation

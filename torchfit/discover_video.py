@@ -479,32 +479,65 @@ class VideoProblem:
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences).
 
-        The free state columns are one batch of renders; each effect parameter needs its own
-        flight and render; the edge bias's two columns only move the observed outlines, so they
-        reuse the unmoved render. Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the
-        covariance skip them.
+        One batch of flights and renders holds the unmoved model, the free state columns' steps
+        and the steps of every parameter of a force or body effect (their parameters take one
+        value per candidate, :mod:`torchfit.effects`). A clock's and a lens's parameters need a
+        flight and render each (one time grid per ``odeint`` call, one distortion per render); the
+        edge bias's two columns only move the observed outlines, so they reuse the unmoved render.
+        Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the covariance skip them.
         """
         n_extra = self._extra_count(model)
         n_effect = n_extra - 2  # the extras are the effects' parameters, then the edge bias's two
         free = torch.nonzero(~self._frozen(model)[:14]).flatten()
         zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
+        values, batched = self._stepped_values(model, 1 + len(free), step)
         with torch.no_grad():
-            state = torch.zeros(1 + len(free), 14, dtype=torch.float64)
+            state = torch.zeros(1 + len(free) + len(batched), 14, dtype=torch.float64)
             state[1 + torch.arange(len(free)), free] = step
-            cands, effects, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            fitted = self._fitted_moments(cands, effects)
-            rows = self._vector_of(fitted, edge, mask)  # (1 + F, N)
+            cands, _, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
+            fitted = self._fitted_moments(cands, self.effects(values))
+            rows = self._vector_of(fitted, edge, mask)  # (1 + F + E, N)
             base = rows[0]
             jac = base.new_zeros(len(base), 14 + n_extra)
-            jac[:, free.to(jac.device)] = ((rows[1:] - base) / step).T
+            jac[:, free.to(jac.device)] = ((rows[1:1 + len(free)] - base) / step).T
+            for row, column in enumerate(batched, start=1 + len(free)):
+                jac[:, 14 + column] = (rows[row] - base) / step
             unmoved = tuple(m[:1] for m in fitted)
-            for j in range(n_extra):
+            for j in sorted(set(range(n_extra)) - set(batched)):
                 shifted = zero_extra.clone()
                 shifted[j] = step
                 cands, effects, edge = self._build(model, zero_state, shifted)
                 moved = self._vector(cands, effects, edge, mask) if j < n_effect else self._vector_of(unmoved, edge, mask)
                 jac[:, 14 + j] = (moved[0] - base) / step
         return base.double(), jac.double()
+
+    @staticmethod
+    def _stepped_values(model: _Model, first: int, step: float) -> tuple[dict, list[int]]:
+        """Effect values for a batch whose rows from ``first`` on each step one parameter of a
+        force or body effect by ``step`` scaled units, as :meth:`_build` steps it.
+
+        Returns:
+            ``{name: {param: value}}``, the values of a force or body effect (B,) or (B, 3) with
+            ``B = first + E``, the others shared as in ``model``; and the E extras' indices (the
+            order of :meth:`_build`'s ``extra``) that rows ``first, first + 1, …`` step.
+        """
+        per_row = [name for name in model.values if EFFECTS[name].kind in ("force", "body")]
+        count = sum(torch.as_tensor(v).numel() for name in per_row for v in model.values[name].values())
+        values, batched, offset, row = {}, [], 0, first
+        for name, params in model.values.items():
+            values[name] = {}
+            for pname, value in params.items():
+                value = torch.as_tensor(value, dtype=torch.float64)
+                size = value.numel()
+                if name in per_row:
+                    value = value.expand(first + count, *value.shape).clone()
+                    for k in range(size):
+                        value.view(first + count, size)[row + k, k] += step * EFFECT_SCALES.get(pname, 0.1)
+                        batched.append(offset + k)
+                    row += size
+                values[name][pname] = value
+                offset += size
+        return values, batched
 
     @staticmethod
     def _cost(resid: Tensor) -> float:

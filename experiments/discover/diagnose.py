@@ -4,12 +4,14 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~1 min each
     python experiments/discover/diagnose.py clock SET NAME             # the clock refit from other starts, ~3 min
     python experiments/discover/diagnose.py stall SET NAME EFFECT      # is the baseline stalled? ~4 min
-    python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the column-by-column one, ~2 min
+    python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the earlier ways of computing it, ~3 min
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
+    python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
-Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json.
+Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
+(``chroma``: results/diagnose_chroma.json).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from edge_bias import outline
 from segmentation_error import measure, segment_watching
 from true_masks import load_problem
 
@@ -99,29 +102,56 @@ def _column_by_column(video: dv.VideoProblem, model, mask: torch.Tensor, step: f
     return jac
 
 
+def _effects_one_by_one(video: dv.VideoProblem, model, mask: torch.Tensor, step: float = 1e-3) -> torch.Tensor:
+    """The Jacobian as the code before ``jac-batch`` computed it: the free state columns in one
+    batch, then each effect parameter by its own flight and render, the edge bias's two columns
+    reusing the unmoved render."""
+    n_extra = video._extra_count(model)
+    free = torch.nonzero(~video._frozen(model)[:14]).flatten()
+    zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
+    with torch.no_grad():
+        state = torch.zeros(1 + len(free), 14, dtype=torch.float64)
+        state[1 + torch.arange(len(free)), free] = step
+        fitted = video._fitted_moments(*video._build(model, state, zero_extra)[:2])
+        rows = video._vector_of(fitted, model.edge, mask)
+        jac = rows.new_zeros(rows.shape[1], 14 + n_extra)
+        jac[:, free] = ((rows[1:] - rows[0]) / step).T
+        for j in range(n_extra):
+            shifted = zero_extra.clone()
+            shifted[j] = step
+            cands, effects, edge = video._build(model, zero_state, shifted)
+            moved = (video._vector(cands, effects, edge, mask) if j < n_extra - 2
+                     else video._vector_of(tuple(m[:1] for m in fitted), edge, mask))
+            jac[:, 14 + j] = (moved[0] - rows[0]) / step
+    return jac.double()
+
+
 def jacobian(folder: Path, repeats: int = 3) -> dict:
-    """Seconds per Jacobian, column by column (the code before) and as discover computes it, side by
-    side at the recording's baseline with no effect and with one of three effects added."""
+    """Seconds per Jacobian, side by side at the recording's baseline with no effect and with
+    effects added: column by column (the code before ``0939874``), the effects' parameters one by
+    one (the code before ``jac-batch``) and as discover computes it now; and the largest
+    difference of each from discover's Jacobian."""
     video = _video(folder)
     base = video.fit((), None)
     mask = video.problem.used
     out = {}
-    for effects in ((), ("quadratic_drag",), ("com_offset",), ("lens_distortion",)):
+    ways = {"column_by_column": lambda model: _column_by_column(video, model, mask),
+            "effects_one_by_one": lambda model: _effects_one_by_one(video, model, mask),
+            "discover": lambda model: video._jacobian(model, mask)[1]}
+    for effects in ((), ("quadratic_drag",), ("com_offset",), ("lens_distortion",), ("magnus", "com_offset")):
         model = video._extend(base.payload["model"], effects)
-        seconds = {"column_by_column": [], "discover": []}
+        seconds, jacobians = {label: [] for label in ways}, {}
         for _ in range(2):  # two rounds, best of each
-            for label, fn in (("column_by_column", lambda: _column_by_column(video, model, mask)),
-                              ("discover", lambda: video._jacobian(model, mask)[1])):
+            for label, fn in ways.items():
                 clock_ = time.perf_counter()
                 for _ in range(repeats):
-                    jac = fn()
+                    jacobians[label] = fn(model)
                 seconds[label].append((time.perf_counter() - clock_) / repeats)
-                out.setdefault("+".join(effects) or "baseline", {})[label + "_jacobian"] = jac
-        entry = out["+".join(effects) or "baseline"]
-        a, b = entry.pop("column_by_column_jacobian"), entry.pop("discover_jacobian")
-        entry.update(column_by_column_s=min(seconds["column_by_column"]), discover_s=min(seconds["discover"]),
-                     max_abs_difference=float((a - b).abs().max()), max_abs_entry=float(a.abs().max()))
-        entry["ratio"] = entry["column_by_column_s"] / entry["discover_s"]
+        entry = out["+".join(effects) or "baseline"] = {f"{label}_s": min(seconds[label]) for label in ways}
+        entry["max_abs_entry"] = float(jacobians["discover"].abs().max())
+        for label in ("column_by_column", "effects_one_by_one"):
+            entry[f"{label}_max_abs_difference"] = float((jacobians[label] - jacobians["discover"]).abs().max())
+            entry[f"{label}_ratio"] = entry[f"{label}_s"] / entry["discover_s"]
     return out
 
 
@@ -187,7 +217,46 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
     return {"noise_as_is": run(1.0), f"scale_noise_times_{scale_factor}": run(float(scale_factor))}
 
 
+def _slow(values: np.ndarray, window: int = 7) -> np.ndarray:
+    """(T - window + 1,) moving average of (T,) per-frame values: their slow part."""
+    return np.convolve(values, np.ones(window) / window, mode="valid")
+
+
+def chroma(weights: list[str]) -> dict:
+    """Segmented against true masks in all three concealed sets, at each chroma weight
+    (``SegmentationSettings.chroma_weight``): centroid error RMS over the frames (px) and of its
+    7-frame moving average less its mean (``c_slow``: the error that follows the scene, which
+    the criterion's AR(1) noise does not expect), and the edge bias's spread and that of its
+    moving average. A constant edge bias is the edge nuisance's, so its mean is only listed."""
+    import torchfit.video as video
+
+    out = {}
+    for folder in sorted(p for name in ("recordings", "recordings_fresh1", "recordings_fresh2")
+                         for p in (HERE / name).iterdir() if (p / "truth.json").exists()):
+        frames, _ = video._read_video(folder / "video.mp4", 0, None)
+        true = np.load(folder / "masks.npz")["masks"].astype(bool)
+        perimeter = outline(true).sum((1, 2))
+        for weight in weights:
+            masks = video._segment(frames, video.SegmentationSettings(chroma_weight=float(weight)))["masks"]
+            dx = np.array([np.nonzero(m)[1].mean() - np.nonzero(t)[1].mean() for m, t in zip(masks, true)])
+            dy = np.array([np.nonzero(m)[0].mean() - np.nonzero(t)[0].mean() for m, t in zip(masks, true)])
+            edge = (masks.sum((1, 2)) - true.sum((1, 2))) / perimeter
+            row = {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))),
+                   "c_slow": float(np.sqrt(np.mean(_slow(dx - dx.mean())**2 + _slow(dy - dy.mean())**2))),
+                   "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
+            out.setdefault(f"{folder.parent.name}/{folder.name}", {})[weight] = row
+            print(folder.parent.name, folder.name, weight, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+    out["mean"] = {w: {k: float(np.mean([r[w][k] for r in out.values()])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
+                   for w in weights}
+    return out
+
+
 def main(argv: list[str]) -> None:
+    if argv[:1] == ["chroma"] and len(argv) > 1:
+        result = chroma(argv[1:])
+        print(json.dumps(result["mean"], indent=1))
+        (HERE / "results" / "diagnose_chroma.json").write_text(json.dumps(result, indent=1))
+        return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout}
     if len(argv) < 3 or argv[0] not in commands:
