@@ -6,6 +6,7 @@
     python experiments/discover/concealed.py --true-masks [names...] # MuJoCo's true masks instead
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
     python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
+    python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
     python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
@@ -47,6 +48,7 @@ from torchfit.discover_video import (
 )
 from torchfit.effects import EFFECTS
 from torchfit.shape import load_shape
+from torchfit.video import SegmentationSettings
 
 HERE = Path(__file__).resolve().parent  # also holds true_masks.py (load_problem)
 RECORDINGS = HERE / "recordings"
@@ -55,11 +57,12 @@ CANDIDATES = DEFAULT_CANDIDATES  # inertia left out: see the README
 SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise model's calibration recordings
 
 
-def run_one(folder: Path, out: Path, true_masks: bool = False) -> dict:
+def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None) -> dict:
     truth = json.loads((folder / "truth.json").read_text())
     shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
     camera = Camera.from_file(folder / "camera.json")
-    observation, problem, span = load_problem(folder, shape, camera, true_masks)
+    settings = None if chroma_weight is None else SegmentationSettings(chroma_weight=chroma_weight)
+    observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=CANDIDATES, settings=VIDEO_SELECTION,
                           truth=truth, out_dir=out, overlay=False, progress=print)
 
@@ -378,12 +381,13 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
-         table_only: bool = False, against: str | None = None) -> None:
+         table_only: bool = False, against: str | None = None, chroma_weight: float | None = None) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
     if shipped:
         out = OUT.with_name("shipped")
     else:
-        out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else ""))
+        out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else "")
+                            + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else ""))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -399,7 +403,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, out / folder.name, true_masks)
+        content = run_one(folder, out / folder.name, true_masks, chroma_weight)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -413,6 +417,8 @@ if __name__ == "__main__":
     ap.add_argument("--true-masks", action="store_true", help="MuJoCo's true masks instead of the segmentation")
     ap.add_argument("--shipped", action="store_true", help="the shipped recordings (hide nothing)")
     ap.add_argument("--fresh", type=int, default=0, metavar="K", help="fresh set K (make_concealed.py --fresh K)")
+    ap.add_argument("--chroma-weight", type=float, metavar="W",
+                    help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md)")
@@ -429,4 +435,6 @@ if __name__ == "__main__":
         sys.exit(print(board))
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
-    main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare)
+    if args.chroma_weight is not None and (args.true_masks or args.shipped or not args.chroma_weight > 0):
+        ap.error(f"--chroma-weight needs a positive weight and segmented concealed recordings, got {args.chroma_weight}")
+    main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight)

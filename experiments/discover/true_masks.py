@@ -28,13 +28,14 @@ from torchfit.discover_video import VideoProblem
 from torchfit.paper._recording import load_recording
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
-from torchfit.video import _boxes, load_observation
+from torchfit.video import SegmentationSettings, _boxes, load_observation
 
 
-def load_problem(folder: Path, shape, camera: Camera, true_masks: bool):
+def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings: SegmentationSettings | None = None):
     """A recording's observation, fit problem (float32, CPU) and span: its video segmented as
-    discover does, or with the engine's true masks (``masks.npz``) in place of the segmentation."""
-    observation = load_observation(str(folder / "video.mp4"), camera=camera)
+    discover does (with ``settings``, default the defaults), or with the engine's true masks
+    (``masks.npz``) in place of the segmentation."""
+    observation = load_observation(str(folder / "video.mp4"), camera=camera, settings=settings)
     if true_masks:
         masks = np.load(folder / "masks.npz")["masks"].astype(bool)
         observation = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
