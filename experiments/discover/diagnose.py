@@ -23,8 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from edge_bias import outline
-from segmentation_error import measure, segment_watching
+from segmentation_error import frame_errors, measure, segment_watching
 from true_masks import load_problem
 
 import torchfit.discover_video as dv
@@ -103,7 +102,7 @@ def _column_by_column(video: dv.VideoProblem, model, mask: torch.Tensor, step: f
 
 
 def _effects_one_by_one(video: dv.VideoProblem, model, mask: torch.Tensor, step: float = 1e-3) -> torch.Tensor:
-    """The Jacobian as the code before ``jac-batch`` computed it: the free state columns in one
+    """The Jacobian as the code before ``b76339b`` computed it: the free state columns in one
     batch, then each effect parameter by its own flight and render, the edge bias's two columns
     reusing the unmoved render."""
     n_extra = video._extra_count(model)
@@ -129,7 +128,7 @@ def _effects_one_by_one(video: dv.VideoProblem, model, mask: torch.Tensor, step:
 def jacobian(folder: Path, repeats: int = 3) -> dict:
     """Seconds per Jacobian, side by side at the recording's baseline with no effect and with
     effects added: column by column (the code before ``0939874``), the effects' parameters one by
-    one (the code before ``jac-batch``) and as discover computes it now; and the largest
+    one (the code before ``b76339b``) and as discover computes it now; and the largest
     difference of each from discover's Jacobian."""
     video = _video(folder)
     base = video.fit((), None)
@@ -235,12 +234,9 @@ def chroma(weights: list[str]) -> dict:
                          for p in (HERE / name).iterdir() if (p / "truth.json").exists()):
         frames, _ = video._read_video(folder / "video.mp4", 0, None)
         true = np.load(folder / "masks.npz")["masks"].astype(bool)
-        perimeter = outline(true).sum((1, 2))
         for weight in weights:
             masks = video._segment(frames, video.SegmentationSettings(chroma_weight=float(weight)))["masks"]
-            dx = np.array([np.nonzero(m)[1].mean() - np.nonzero(t)[1].mean() for m, t in zip(masks, true)])
-            dy = np.array([np.nonzero(m)[0].mean() - np.nonzero(t)[0].mean() for m, t in zip(masks, true)])
-            edge = (masks.sum((1, 2)) - true.sum((1, 2))) / perimeter
+            dx, dy, edge = frame_errors(masks, true)
             row = {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))),
                    "c_slow": float(np.sqrt(np.mean(_slow(dx - dx.mean())**2 + _slow(dy - dy.mean())**2))),
                    "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
