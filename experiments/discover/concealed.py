@@ -9,6 +9,7 @@
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
+    python experiments/discover/concealed.py --scoreboard --chroma-weight W  # default weight against W, side by side
     python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
@@ -234,6 +235,42 @@ def scoreboard() -> str:
     return "\n".join(lines)
 
 
+def weights(weight: float) -> str:
+    """The segmented sets at the default chroma weight and at ``weight``
+    (``--chroma-weight W`` runs), over the recordings run at both: the score of each set and of
+    all, and every recording whose verdict or held-out halving differs (no fitting)."""
+    root = OUT.parent
+    default = SegmentationSettings().chroma_weight
+    lines = ["| set | chroma weight | right | controls quiet | wrong names | held-out halved "
+             "| coefficients within 25 % | recordings run at both |", "|---|---|---|---|---|---|---|---|"]
+    changed = ["| set | recording | hidden | verdict, " + f"{default:g} | verdict, {weight:g} "
+               "| held-out px after, " + f"{default:g} / {weight:g} |", "|---|---|---|---|---|---|"]
+    totals: dict = {}
+    for label, name in SETS.items():
+        pair = [root / name / "summary.json", root / f"{name}_chroma{weight:g}" / "summary.json"]
+        if not all(f.exists() for f in pair):
+            continue
+        rows = [{r["recording"]: r for r in json.loads(f.read_text())} for f in pair]
+        common = sorted(set(rows[0]) & set(rows[1]))
+        for w, by_name in zip((default, weight), rows):
+            counts = score([by_name[n] for n in common])
+            counts["run"] = [len(common), 0]
+            total = totals.setdefault(w, {})
+            for key, value in counts.items():
+                total[key] = total.get(key, []) + value if key == "wrong_names" else \
+                    [a + b for a, b in zip(total.get(key, [0, 0]), value)]
+            lines.append(_board_row(label, f"{w:g}", counts, str(len(common))))
+        for n in common:
+            a, b = rows[0][n], rows[1][n]
+            halved = [r["right"] and r["heldout_px_after"] <= 0.5 * r["heldout_px_before"] for r in (a, b)]
+            if _verdict(a) != _verdict(b) or halved[0] != halved[1]:
+                changed.append(f"| {label} | {n} | {', '.join(a['truth']) or 'nothing'} | {_verdict(a)} ({_right(a)}) "
+                               f"| {_verdict(b)} ({_right(b)}) | {a['heldout_px_after']:.2f} / {b['heldout_px_after']:.2f} |")
+    for w, counts in totals.items():
+        lines.append(_board_row("**all**", f"{w:g}", counts, str(counts["run"][0])))
+    return "\n".join(lines) + "\n\nVerdict or held-out halving differs:\n\n" + "\n".join(changed)
+
+
 RULES = ("unphysical", "evidence_spread", "heldout", "wald")  # the tests besides the ΔBIC threshold
 
 
@@ -283,12 +320,14 @@ def rules_text(tally: dict) -> str:
     return "\n".join(lines)
 
 
-def _board_row(label: str, masks: str, counts: dict) -> str:
+def _board_row(label: str, masks: str, counts: dict, last: str | None = None) -> str:
+    """A scoreboard row of :func:`score`'s ``counts``; its last cell ``last`` or, by default,
+    the right verdicts above the exact-mask limit."""
     def part(pair):
         return f"{pair[0]} of {pair[1]}"
     return (f"| {label} | {masks} | {part(counts['effect_right'])} | {part(counts['controls_quiet'])} | "
             f"{', '.join(counts['wrong_names']) or 'none'} | {part(counts['heldout_halved'])} | "
-            f"{part(counts['coefficients_within_25pc'])} | {part(counts['above_limit'])} |")
+            f"{part(counts['coefficients_within_25pc'])} | {last or part(counts['above_limit'])} |")
 
 
 def _current_edge(r: dict) -> bool:
@@ -421,13 +460,19 @@ if __name__ == "__main__":
                     help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     ap.add_argument("--scoreboard", action="store_true",
-                    help="the targets over every stored set, segmented and exact masks (results/scoreboard.md)")
+                    help="the targets over every stored set, segmented and exact masks (results/scoreboard.md); "
+                         "with --chroma-weight W the segmented sets at the default weight and at W side by side "
+                         "(results/chroma<W>_side_by_side.md)")
     ap.add_argument("--rules", action="store_true",
                     help="what each test alone kept out over every stored set (results/rules.md)")
     args = ap.parse_args()
     if args.rules:
         text = rules_text(rule_tally())
         (OUT.parent / "rules.md").write_text(text + "\n")
+        sys.exit(print(text))
+    if args.scoreboard and args.chroma_weight is not None:
+        text = weights(args.chroma_weight)
+        (OUT.parent / f"chroma{args.chroma_weight:g}_side_by_side.md").write_text(text + "\n")
         sys.exit(print(text))
     if args.scoreboard:
         board = scoreboard()
