@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -17,14 +18,15 @@ BALL = {"area": AREA, "mass": MASS, "moment": 2 / 3 * MASS * 0.02 ** 2}
 CANDIDATES = ["quadratic_drag", "linear_drag", "magnus", "time_scale"]
 
 
-def _discover(effects, params, **kw):
+def _discover(effects, params, out_dir=None, **kw):
     track = synthesize_track(effects, params, samples=70, seed=kw.pop("seed", 0), **kw)
-    return discover_points(batch_tracks([track]), candidates=CANDIDATES, **BALL)
+    return discover_points(batch_tracks([track]), candidates=CANDIDATES, out_dir=out_dir, **BALL)
 
 
-def test_control_with_nothing_missing_says_nothing():
-    content = _discover([], {})
+def test_control_with_nothing_missing_says_nothing(tmp_path):
+    content = _discover([], {}, out_dir=tmp_path)
     assert content["verdict"] == []
+    assert "Verdict: nothing is missing" in (tmp_path / "report.txt").read_text()
     assert content["models"][0]["rms_m"] < 1.2 * content["noise_rms_m"]
     assert all(not entry["passes"] for tries in content["effects"].values() for entry in tries)
 
@@ -92,6 +94,11 @@ def test_cli_points_fit_and_discover(tmp_path):
     summary = run(_compose(["experiment=discover", *common, "data.spin=null", "params.quick=true"]), tmp_path / "d")
     assert summary["verdict"] == ["quadratic_drag"]
     assert json.loads((tmp_path / "d" / "discover.json").read_text())["verdict"] == ["quadratic_drag"]
+    # the report says it in words, with the coefficient and its uncertainty (a pure number: no unit)
+    report = (tmp_path / "d" / "report.txt").read_text()
+    assert "Verdict: quadratic_drag." in report
+    value, std = re.search(r"^  quadratic_drag\.drag_coefficient = (\S+) ± (\S+)$", report, re.M).groups()
+    assert abs(float(value) - 0.5) < 0.05 and 0 < float(std) < 0.05
 
 
 def test_discover_without_data_is_a_clear_error(tmp_path):

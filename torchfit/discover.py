@@ -530,6 +530,108 @@ def _jsonable(value):
     return value
 
 
+def spoken_unit(unit: str) -> str:
+    """A parameter's unit as a report prints it: the SI ``1`` of a pure number is left out
+    (``"1 (true fps / stated fps)"`` -> ``"(true fps / stated fps)"``); discover.json keeps it."""
+    return unit[1:].strip() if unit == "1" or unit.startswith("1 (") else unit
+
+
+def parameter_lines(verdict: Sequence[str], params: dict) -> list[str]:
+    """``  effect.parameter = value ± std unit`` for every parameter of the named effects, from a
+    model's ``params`` (``{effect: {parameter: {"value", "std", "unit"}}}``)."""
+    lines = []
+    for name in verdict:
+        for pname, entry in params.get(name, {}).items():
+            value, std = entry["value"], entry["std"]
+            if isinstance(value, list):
+                text = "(" + ", ".join(f"{v:.4g}" for v in value) + ")"
+                err = "(" + ", ".join(f"{s:.2g}" for s in std) + ")" if isinstance(std, list) else "?"
+            else:
+                text, err = f"{value:.4g}", f"{std:.2g}"
+            lines.append(f"  {name}.{pname} = {text} ± {err} {spoken_unit(entry['unit'])}".rstrip())
+    return lines
+
+
+def verdict_lines(selection: Selection, params: dict, label: str = "Verdict") -> list[str]:
+    """The verdict in words, then the named effects' parameters (:func:`parameter_lines`)."""
+    if not selection.verdict:
+        indist = [s.indistinguishable for s in selection.steps if s.indistinguishable]
+        if indist:
+            return [f"{label}: {' or '.join(indist[0])} — indistinguishable on this data; nothing named."]
+        return [f"{label}: nothing is missing — no effect beats the noise."]
+    return [f"{label}: {', then '.join(selection.verdict)}.", *parameter_lines(selection.verdict, params)]
+
+
+def limits_line(selection: Selection, data: str) -> list[str]:
+    """What the first round could not have seen: each unnamed parameter's size below which it
+    would not pass the criterion on this ``data`` ("clip", "tracks")."""
+    limits = []
+    for name, score in (selection.steps[0].scores.items() if selection.steps else ()):
+        if name in selection.verdict:
+            continue
+        for pname, limit in score.get("detectable_above", {}).items():
+            if limit is None:
+                continue
+            unit = spoken_unit(EFFECTS[name].units.get(pname, ""))
+            text = ("(" + ", ".join(f"{v:.2g}" for v in limit) + ")") if isinstance(limit, list) else f"{limit:.2g}"
+            limits.append(f"{name}.{pname} ±{text} {unit}".rstrip())
+    if not limits:
+        return []
+    return [f"What this {data} cannot rule out (an effect smaller than this would not pass the criterion): "
+            + "; ".join(limits) + "."]
+
+
+def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread: Callable[[dict], str]) -> list[str]:
+    """Per round: every candidate that lowers the BIC by more than the threshold and is not
+    named, with the tests it failed in words, then the round's three strongest candidates.
+    ``heldout(score)`` words the held-out errors before -> after, ``spread(score)`` the stretch
+    the evidence rests on."""
+    lines = []
+    for step in selection.steps:
+        for name, score in step.scores.items():
+            fails = score.get("fails", [])
+            if "delta_bic" in fails:
+                continue
+            reasons = []
+            if "unphysical" in fails:
+                reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
+            if "heldout" in fails:
+                reasons.append(f"it predicts the held-out data worse ({heldout(score)})")
+            if "wald" in fails:
+                reasons.append(f"its fitted value is within its own uncertainty of none (Wald chi2 "
+                               f"{score['wald_chi2']:.1f} against a chi2 drop of {score['delta_chi2']:.1f}): the refit "
+                               "moved the other parameters, not this effect")
+            if "evidence_spread" in fails:
+                reasons.append(f"its evidence rests on {spread(score)} (ΔBIC {score['delta_bic_without_block']:.1f} "
+                               "without them): one stretch of the data, not a force over the whole flight")
+            if reasons:
+                lines.append(f"Not named: {name} lowers the BIC by {score['delta_bic']:.1f}, but " + "; and ".join(reasons) + ".")
+        ranked = sorted(step.scores.items(), key=lambda kv: -kv[1]["delta_bic"])[:3]
+        lines.append(f"Round {'+'.join(step.base) or 'baseline'}: " + "; ".join(
+            f"{n} ΔBIC {s['delta_bic']:.1f}, held-out gain {100 * s['heldout_gain']:.0f}%" for n, s in ranked))
+    return lines
+
+
+def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict, located_after: dict,
+                  noise_var: float, holdout: float) -> str:
+    """report.txt of :func:`discover_points`: a report a person reads in a minute (``holdout``:
+    the fraction at the end of each track that the held-out fits predict)."""
+    base, final = chain[0], chain[-1]
+
+    def mm(metres: float) -> str:
+        return f"{metres * 1e3:.2f} mm"
+    lines = [f"Where the baseline misses: RMS {mm(located['rms_m'])}, {located['summary']}.",
+             *verdict_lines(selection, final.params),
+             *limits_line(selection, "data"),
+             f"Evidence: RMS {mm(base.fit_rms)} -> {mm(final.fit_rms)}; held-out RMS (the last "
+             f"{100 * holdout:.0f} % of each track, predicted) {mm(base.heldout_rms)} -> "
+             f"{mm(final.heldout_rms)}; BIC {_criterion(base, noise_var)[1]:.1f} -> {_criterion(final, noise_var)[1]:.1f}.",
+             f"Left after the final model: RMS {mm(located_after['rms_m'])}; {located_after['summary']}.",
+             *not_named_lines(selection, lambda s: f"{mm(s['heldout_rms_before'])} -> {mm(s['heldout_rms_after'])}",
+                              lambda s: "one stretch of the samples")]
+    return "\n".join(lines) + "\n"
+
+
 def discover_points(data: PointData, *, area: float, mass: float, moment: float, g: float = 9.81, up: int = 2,
                     candidates: Sequence[str] = POINT_EFFECTS, settings: SelectionSettings = SelectionSettings(),
                     out_dir: Path | None = None, progress=None, step: float = 0.005) -> dict:
@@ -541,7 +643,8 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         g: m/s², along ``-up``.
         candidates: effects to try.
         settings: the selection rules.
-        out_dir: where to write ``discover.json`` and ``residuals.png`` (nothing written if None).
+        out_dir: where to write ``discover.json``, ``residuals.png`` and ``report.txt``
+            (nothing written if None).
 
     Returns:
         The ``discover.json`` content (DESIGN.md): ``verdict``, ``effects``, ``located`` and more.
@@ -579,7 +682,10 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
         plot_residuals([(label, f.payload["all"]) for label, f in labelled], data,
                        out_dir / "residuals.png", problem.noise_var)
-        content["figures"] = ["discover.json", "residuals.png"]
+        (out_dir / "report.txt").write_text(points_report(selection, chain, content["located"],
+                                                          content["located_after"], problem.noise_var,
+                                                          settings.holdout))
+        content["figures"] = ["discover.json", "residuals.png", "report.txt"]
     return content
 
 

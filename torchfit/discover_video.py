@@ -43,7 +43,10 @@ from .discover import (
     SelectionSettings,
     _criterion,
     _jsonable,
+    limits_line,
+    not_named_lines,
     select_effects,
+    verdict_lines,
     wald_statistic,
 )
 from .dynamics import RigidBody, integrate
@@ -930,35 +933,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     if video.outliers:
         lines.append(f"Left out as segmentation failures (jumps off their neighbours): frames {video.outliers} "
                      "of the fitted span.")
-    if not selection.verdict:
-        indist = [s.indistinguishable for s in selection.steps if s.indistinguishable]
-        if indist:
-            lines.append(f"Verdict: {' or '.join(indist[0])} — indistinguishable on this data; nothing named.")
-        else:
-            lines.append("Verdict: nothing is missing — no effect beats the noise.")
-    else:
-        label = "Beat the noise on top of that poor fit (not a verdict)" if withheld_iou is not None else "Verdict"
-        lines.append(f"{label}: {', then '.join(selection.verdict)}.")
-        for name in selection.verdict:
-            for pname, entry in final.params.get(name, {}).items():
-                value, std = entry["value"], entry["std"]
-                if isinstance(value, list):
-                    text = "(" + ", ".join(f"{v:.4g}" for v in value) + ")"
-                    err = "(" + ", ".join(f"{s:.2g}" for s in std) + ")" if isinstance(std, list) else "?"
-                else:
-                    text, err = f"{value:.4g}", f"{std:.2g}"
-                lines.append(f"  {name}.{pname} = {text} ± {err} {entry['unit']}")
-    limits = []
-    for name, score in (selection.steps[0].scores.items() if selection.steps else ()):
-        if name in selection.verdict:
-            continue
-        for pname, limit in score.get("detectable_above", {}).items():
-            unit = EFFECTS[name].units.get(pname, "")
-            text = ("(" + ", ".join(f"{v:.2g}" for v in limit) + ")") if isinstance(limit, list) else f"{limit:.2g}"
-            limits.append(f"{name}.{pname} ±{text} {unit}".rstrip())
-    if limits:
-        lines.append("What this clip cannot rule out (an effect smaller than this would not pass the criterion): "
-                     + "; ".join(limits) + ".")
+    label = "Beat the noise on top of that poor fit (not a verdict)" \
+        if withheld_iou is not None and selection.verdict else "Verdict"
+    lines += verdict_lines(selection, final.params, label)
+    lines += limits_line(selection, "clip")
     lines.append(f"Evidence: held-out centroid error {base.payload['heldout_centroid_px']:.2f} px -> "
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
@@ -968,28 +946,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
                  f"(observed outline outside the true one when positive), ends minus sides "
                  f"{edge['ends_minus_sides']:+.2f} ± {edge['ends_minus_sides_std']:.2f} px.")
     frames = np.flatnonzero(video.problem.used.cpu().numpy())
-    for step in selection.steps:
-        for name, score in step.scores.items():
-            if "delta_bic" in score["fails"]:
-                continue
-            reasons = []  # why a candidate that lowers the BIC enough is not named, in words
-            if "unphysical" in score["fails"]:
-                reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
-            if "heldout" in score["fails"]:
-                reasons.append(f"it predicts the held-out frames worse ({score['heldout_rms_before']:.2f} -> "
-                               f"{score['heldout_rms_after']:.2f} noise floors)")
-            if "wald" in score["fails"]:
-                reasons.append(f"its fitted value is within its own uncertainty of none (Wald chi2 "
-                               f"{score['wald_chi2']:.1f} against a chi2 drop of {score['delta_chi2']:.1f}): the refit "
-                               "moved the other parameters, not this effect")
-            if "evidence_spread" in score["fails"]:
-                first, last = (int(frames[i]) for i in score["weakest_block"])
-                reasons.append(f"its evidence rests on frames {first}-{last} of the fitted span "
-                               f"(ΔBIC {score['delta_bic_without_block']:.1f} without them): one stretch of the "
-                               "scene, not a force over the whole flight")
-            if reasons:
-                lines.append(f"Not named: {name} lowers the BIC by {score['delta_bic']:.1f}, but " + "; and ".join(reasons) + ".")
-        ranked = sorted(step.scores.items(), key=lambda kv: -kv[1]["delta_bic"])[:3]
-        lines.append(f"Round {'+'.join(step.base) or 'baseline'}: " + "; ".join(
-            f"{n} ΔBIC {s['delta_bic']:.1f}, held-out gain {100 * s['heldout_gain']:.0f}%" for n, s in ranked))
+
+    def spread(score: dict) -> str:
+        first, last = (int(frames[i]) for i in score["weakest_block"])
+        return f"frames {first}-{last} of the fitted span"
+    lines += not_named_lines(selection, lambda score: f"{score['heldout_rms_before']:.2f} -> "
+                             f"{score['heldout_rms_after']:.2f} noise floors", spread)
     return lines
