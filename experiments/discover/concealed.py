@@ -235,11 +235,11 @@ def scoreboard() -> str:
     return "\n".join(lines)
 
 
-def weights(weight: float) -> str:
+def weights(weight: float, root: Path = OUT.parent) -> str:
     """The segmented sets at the default chroma weight and at ``weight``
     (``--chroma-weight W`` runs), over the recordings run at both: the score of each set and of
-    all, and every recording whose verdict or held-out halving differs (no fitting)."""
-    root = OUT.parent
+    all, and every recording whose verdict or held-out halving differs (from the stored
+    summary.json files under ``root``; no fitting)."""
     default = SegmentationSettings().chroma_weight
     lines = ["| set | chroma weight | right | controls quiet | wrong names | held-out halved "
              "| coefficients within 25 % | recordings run at both |", "|---|---|---|---|---|---|---|---|"]
