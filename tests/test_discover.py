@@ -27,6 +27,7 @@ def test_control_with_nothing_missing_says_nothing(tmp_path):
     content = _discover([], {}, out_dir=tmp_path)
     assert content["verdict"] == []
     assert "Verdict: nothing is missing" in (tmp_path / "report.txt").read_text()
+    assert content["located"]["summary"] == "at noise level: along velocity, vertical normal, lateral"
     assert content["models"][0]["rms_m"] < 1.2 * content["noise_rms_m"]
     assert all(not entry["passes"] for tries in content["effects"].values() for entry in tries)
 
@@ -52,6 +53,10 @@ def test_drag_track_finds_quadratic_drag_with_its_coefficient():
     first = content["effects"]["quadratic_drag"][0]
     assert first["heldout_rms_after"] < 0.2 * first["heldout_rms_before"] and first["delta_bic"] > 100
     assert content["located"]["direction_rms_m"]["along_velocity"] == max(content["located"]["direction_rms_m"].values())
+    # in words: drag leaves the observed ball behind the drag-free fit, more and more
+    assert content["located"]["summary"].startswith("along velocity: observed behind the fit from ")
+    assert "growing like t^2" in content["located"]["summary"].split(";")[0]
+    assert content["located_after"]["summary"] == "at noise level: along velocity, vertical normal, lateral"
 
 
 def test_drag_and_magnus_track_finds_both_in_order():

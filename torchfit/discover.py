@@ -48,6 +48,7 @@ from .points import (
     ballistic_start,
     fit_tracks,
 )
+from .residuals import polynomial_trend
 
 __all__ = [
     "ModelFit",
@@ -451,10 +452,14 @@ class PointsProblem:
         return out
 
 
-def locate_points(fit: PointFit, data: PointData, noise_var: float, bins: int = 4) -> dict:
-    """Where a model's residual lives: per world axis, per flight direction (along the velocity,
-    the normal within the vertical plane, the lateral), and per stretch of the flight, each as an
-    RMS in metres next to the noise's.
+def locate_points(fit: PointFit, data: PointData, noise_var: float, bins: int = 4, threshold: float = 5.0) -> dict:
+    """Where a model's residual (observed minus predicted) lives: per world axis, per flight
+    direction (along the velocity, the normal within the vertical plane, the lateral), and per
+    stretch of the flight, each as an RMS in metres next to the noise's; and in words, per
+    flight direction, as :func:`torchfit.residuals.locate` says it for video: the simplest
+    polynomial trend in the time since each track's start (pooled over the tracks), flagged when
+    it explains more than ``threshold`` noise standard deviations and the RMS exceeds twice the
+    noise, with its sign, growth and the time from which it stays above two noise floors.
     """
     residual = fit.residual * data.weights.unsqueeze(-1)
     weights = data.weights
@@ -468,22 +473,46 @@ def locate_points(fit: PointFit, data: PointData, noise_var: float, bins: int = 
     lateral = torch.cross(along, up.expand_as(along), dim=-1)
     lateral = lateral / lateral.norm(dim=-1, keepdim=True).clamp(min=1e-12)
     normal = torch.cross(lateral, along, dim=-1)
-    directions = {name: rms((residual * d).sum(-1), weights)
+    components = {name: (residual * d).sum(-1)
                   for name, d in (("along_velocity", along), ("vertical_normal", normal), ("lateral", lateral))}
+    directions = {name: rms(c, weights) for name, c in components.items()}
     progress = torch.cumsum(weights, -1) / weights.sum(-1, keepdim=True)
     stretches = {}
     for k in range(bins):
         inside = weights * ((progress > k / bins) & (progress <= (k + 1) / bins)).to(weights)
         stretches[f"{k / bins:.2f}-{(k + 1) / bins:.2f}"] = rms((residual ** 2).sum(-1).sqrt(), inside) / math.sqrt(3)
-    worst_axis = max(axes, key=axes.get)
-    worst_direction = max(directions, key=directions.get)
-    worst_stretch = max(stretches, key=stretches.get)
+    sigma = math.sqrt(noise_var)
+    kept = weights.flatten() > 0
+    times = data.times.flatten()[kept].double().cpu().numpy()
+    order = np.argsort(times, kind="stable")
+    words, trends = [], {}
+    # the sign of each direction in words: residual = observed - predicted
+    sides = {"along_velocity": ("ahead of", "behind"), "vertical_normal": ("above", "below"),
+             "lateral": ("right of", "left of")}
+    for name, values in components.items():
+        v = values.flatten()[kept].double().cpu().numpy()[order]
+        t = times[order]
+        trend = polynomial_trend(t, v, max(sigma, 1e-12))
+        fitted = np.polyval(trend["coefficients"], t) if trend["degree"] is not None else np.zeros_like(t)
+        above = np.abs(fitted) > 2 * sigma
+        onset = next((float(t[i]) for i in range(len(above)) if above[i:].all()), None)
+        flagged = bool(trend["significance"] > threshold and directions[name] > 2 * sigma)
+        growth = {0: "constant", 1: "growing linearly", 2: "growing like t^2"}.get(trend["degree"], "-")
+        trends[name] = {"trend": trend["degree"], "growth": growth, "significance": trend["significance"],
+                        "from_s": onset, "flagged": flagged}
+        if flagged:
+            side = sides[name][0 if fitted[-1] > 0 else 1]
+            start = f" from {onset:.3g} s on" if onset is not None else ""
+            words.append(f"{name.replace('_', ' ')}: observed {side} the fit{start}, {growth}; RMS "
+                         f"{directions[name] * 1e3:.2f} mm vs noise {sigma * 1e3:.2f} mm "
+                         f"({trend['significance']:.0f} sigma)")
+    quiet = [name.replace("_", " ") for name in components if not trends[name]["flagged"]]
+    if quiet:
+        words.append(f"at noise level: {', '.join(quiet)}")
     return {
-        "noise_rms_m": math.sqrt(noise_var), "rms_m": math.sqrt(float((residual ** 2).sum()) / (3 * count)),
+        "noise_rms_m": sigma, "rms_m": math.sqrt(float((residual ** 2).sum()) / (3 * count)),
         "axis_rms_m": axes, "direction_rms_m": directions, "stretch_rms_m": stretches,
-        "summary": (f"largest on axis {worst_axis} ({axes[worst_axis] * 1e3:.2f} mm), direction {worst_direction} "
-                    f"({directions[worst_direction] * 1e3:.2f} mm), stretch {worst_stretch} of the flight; "
-                    f"noise {math.sqrt(noise_var) * 1e3:.2f} mm"),
+        "direction_trends": trends, "summary": "; ".join(words),
     }
 
 
@@ -620,13 +649,13 @@ def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict
 
     def mm(metres: float) -> str:
         return f"{metres * 1e3:.2f} mm"
-    lines = [f"Where the baseline misses: RMS {mm(located['rms_m'])}, {located['summary']}.",
+    lines = [f"Where the baseline misses (RMS {mm(located['rms_m'])}): {located['summary']}.",
              *verdict_lines(selection, final.params),
              *limits_line(selection, "data"),
              f"Evidence: RMS {mm(base.fit_rms)} -> {mm(final.fit_rms)}; held-out RMS (the last "
              f"{100 * holdout:.0f} % of each track, predicted) {mm(base.heldout_rms)} -> "
              f"{mm(final.heldout_rms)}; BIC {_criterion(base, noise_var)[1]:.1f} -> {_criterion(final, noise_var)[1]:.1f}.",
-             f"Left after the final model: RMS {mm(located_after['rms_m'])}; {located_after['summary']}.",
+             f"Left after the final model (RMS {mm(located_after['rms_m'])}): {located_after['summary']}.",
              *not_named_lines(selection, lambda s: f"{mm(s['heldout_rms_before'])} -> {mm(s['heldout_rms_after'])}",
                               lambda s: "one stretch of the samples")]
     return "\n".join(lines) + "\n"

@@ -20,7 +20,8 @@ import torch
 
 from .losses import mask_moments
 
-__all__ = ["CHANNELS", "UNITS", "Residuals", "channel_values", "locate", "noise_floor", "residual_channels", "systematic_floor"]
+__all__ = ["CHANNELS", "UNITS", "Residuals", "channel_values", "locate", "noise_floor", "polynomial_trend",
+           "residual_channels", "systematic_floor"]
 
 CHANNELS = ("centroid_x", "centroid_y", "scale", "shape", "orientation")
 UNITS = {"centroid_x": "px", "centroid_y": "px", "scale": "relative", "shape": "relative",
@@ -150,8 +151,9 @@ def noise_floor(values: np.ndarray, rho: float = 0.0) -> float:
     return float(1.4826 * np.median(np.abs(second - np.median(second))) / np.sqrt(6.0 - 8.0 * rho + 2.0 * rho**2))
 
 
-def _trend(times: np.ndarray, values: np.ndarray, sigma: float) -> dict:
-    """The simplest polynomial trend (degree 0-2, BIC with the known noise) and its significance."""
+def polynomial_trend(times: np.ndarray, values: np.ndarray, sigma: float) -> dict:
+    """The simplest polynomial trend of (N,) ``values`` at (N,) ``times`` (degree 0-2, BIC with
+    the known noise ``sigma``) and its significance (a z-score from the drop in chi-squared)."""
     n = len(values)
     best = None
     chi2_zero = float(np.sum((values / sigma) ** 2))
@@ -192,7 +194,7 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
         if not np.isfinite(sigma) or len(values) < 5:
             continue
         sigma = max(sigma, 1e-9)
-        trend = _trend(t, values, sigma)
+        trend = polynomial_trend(t, values, sigma)
         fitted = np.polyval(trend["coefficients"], t) if trend["degree"] is not None else np.zeros_like(t)
         above = np.abs(fitted) > 2 * sigma
         onset = next((int(idx[i]) for i in range(len(above)) if above[i:].all()), None)
