@@ -625,7 +625,8 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
             if "unphysical" in fails:
                 reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
             if "heldout" in fails:
-                reasons.append(f"it predicts the held-out data worse ({heldout(score)})")
+                reasons.append(f"it does not predict the held-out data well enough ({heldout(score)}, "
+                               f"{100 * score['heldout_gain']:+.0f} %)")
             if "wald" in fails:
                 reasons.append(f"its fitted value is within its own uncertainty of none (Wald chi2 "
                                f"{score['wald_chi2']:.1f} against a chi2 drop of {score['delta_chi2']:.1f}): the refit "
