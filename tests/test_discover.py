@@ -236,3 +236,16 @@ def test_evidence_resting_on_one_stretch_of_frames_is_not_named():
     assert off.verdict == [] and sorted(off.steps[0].indistinguishable) == ["quadratic_drag", "time_scale"]
     with pytest.raises(ValueError, match="evidence_blocks"):
         SelectionSettings(evidence_blocks=0)
+
+
+def test_report_says_which_later_effect_carries_a_replaced_effects_parameters():
+    """Wind brings its own drag coefficient and replaces quadratic drag in the model: the report
+    says so instead of dropping the named drag silently; a pure number's unit '1' is not printed."""
+    from torchfit.discover import parameter_lines
+
+    params = {"wind": {"drag_coefficient": {"value": 0.34, "std": 0.007, "unit": "1"}},
+              "magnus": {"lift_coefficient": {"value": 0.058, "std": 0.002, "unit": "1 (per unit spin ratio)"}}}
+    assert parameter_lines(["quadratic_drag", "wind", "magnus"], params) == [
+        "  quadratic_drag: in the final model its parameters are wind's",
+        "  wind.drag_coefficient = 0.34 ± 0.007",
+        "  magnus.lift_coefficient = 0.058 ± 0.002 (per unit spin ratio)"]

@@ -567,9 +567,15 @@ def spoken_unit(unit: str) -> str:
 
 def parameter_lines(verdict: Sequence[str], params: dict) -> list[str]:
     """``  effect.parameter = value ± std unit`` for every parameter of the named effects, from a
-    model's ``params`` (``{effect: {parameter: {"value", "std", "unit"}}}``)."""
+    model's ``params`` (``{effect: {parameter: {"value", "std", "unit"}}}``); a named effect the
+    model no longer holds (quadratic drag once wind, with its own drag coefficient, replaced it)
+    gets a line saying which later effect carries its parameters."""
     lines = []
-    for name in verdict:
+    for k, name in enumerate(verdict):
+        if name not in params:  # replaced by a later effect that carries the same parameter (wind's C_d)
+            later = [n for n in verdict[k + 1:] if set(EFFECTS[n].null_params) & set(EFFECTS[name].null_params)]
+            lines.append(f"  {name}: in the final model its parameters are {' and '.join(later) or 'another effect'}'s")
+            continue
         for pname, entry in params.get(name, {}).items():
             value, std = entry["value"], entry["std"]
             if isinstance(value, list):
