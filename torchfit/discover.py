@@ -48,7 +48,7 @@ from .points import (
     ballistic_start,
     fit_tracks,
 )
-from .residuals import polynomial_trend
+from .residuals import channel_trend
 
 __all__ = [
     "ModelFit",
@@ -485,25 +485,21 @@ def locate_points(fit: PointFit, data: PointData, noise_var: float, bins: int = 
     kept = weights.flatten() > 0
     times = data.times.flatten()[kept].double().cpu().numpy()
     order = np.argsort(times, kind="stable")
+    times = times[order]
     words, trends = [], {}
     # the sign of each direction in words: residual = observed - predicted
     sides = {"along_velocity": ("ahead of", "behind"), "vertical_normal": ("above", "below"),
              "lateral": ("right of", "left of")}
     for name, values in components.items():
-        v = values.flatten()[kept].double().cpu().numpy()[order]
-        t = times[order]
-        trend = polynomial_trend(t, v, max(sigma, 1e-12))
-        fitted = np.polyval(trend["coefficients"], t) if trend["degree"] is not None else np.zeros_like(t)
-        above = np.abs(fitted) > 2 * sigma
-        onset = next((float(t[i]) for i in range(len(above)) if above[i:].all()), None)
-        flagged = bool(trend["significance"] > threshold and directions[name] > 2 * sigma)
-        growth = {0: "constant", 1: "growing linearly", 2: "growing like t^2"}.get(trend["degree"], "-")
-        trends[name] = {"trend": trend["degree"], "growth": growth, "significance": trend["significance"],
-                        "from_s": onset, "flagged": flagged}
-        if flagged:
-            side = sides[name][0 if fitted[-1] > 0 else 1]
+        trend = channel_trend(times, values.flatten()[kept].double().cpu().numpy()[order], max(sigma, 1e-12),
+                              threshold)
+        onset = None if trend["onset"] is None else float(times[trend["onset"]])
+        trends[name] = {"trend": trend["trend"], "growth": trend["growth"], "significance": trend["significance"],
+                        "from_s": onset, "flagged": trend["flagged"]}
+        if trend["flagged"]:
+            side = sides[name][0 if trend["sign"] > 0 else 1]
             start = f" from {onset:.3g} s on" if onset is not None else ""
-            words.append(f"{name.replace('_', ' ')}: observed {side} the fit{start}, {growth}; RMS "
+            words.append(f"{name.replace('_', ' ')}: observed {side} the fit{start}, {trend['growth']}; RMS "
                          f"{directions[name] * 1e3:.2f} mm vs noise {sigma * 1e3:.2f} mm "
                          f"({trend['significance']:.0f} sigma)")
     quiet = [name.replace("_", " ") for name in components if not trends[name]["flagged"]]

@@ -20,8 +20,8 @@ import torch
 
 from .losses import mask_moments
 
-__all__ = ["CHANNELS", "UNITS", "Residuals", "channel_values", "locate", "noise_floor", "polynomial_trend",
-           "residual_channels", "systematic_floor"]
+__all__ = ["CHANNELS", "UNITS", "Residuals", "channel_values", "channel_trend", "locate", "noise_floor",
+           "polynomial_trend", "residual_channels", "systematic_floor"]
 
 CHANNELS = ("centroid_x", "centroid_y", "scale", "shape", "orientation")
 UNITS = {"centroid_x": "px", "centroid_y": "px", "scale": "relative", "shape": "relative",
@@ -173,6 +173,32 @@ def polynomial_trend(times: np.ndarray, values: np.ndarray, sigma: float) -> dic
     return best
 
 
+def channel_trend(times: np.ndarray, values: np.ndarray, sigma: float, threshold: float = 5.0) -> dict:
+    """One residual channel's trend, as :func:`locate` words it.
+
+    Args:
+        times: (N,) ascending times of the values.
+        values: (N,) residuals.
+        sigma: their noise standard deviation.
+        threshold: the trend must explain more than this many noise standard deviations.
+
+    Returns:
+        ``rms``, ``significance``, ``trend`` (degree), ``growth`` (in words), ``sign`` of the
+        trend at the last time (+1, -1 or 0), ``onset`` (the first index from which the trend
+        stays above two noise floors, or None) and ``flagged`` (significant, with an RMS above
+        twice the noise).
+    """
+    trend = polynomial_trend(times, values, sigma)
+    fitted = np.polyval(trend["coefficients"], times) if trend["degree"] is not None else np.zeros_like(times)
+    above = np.abs(fitted) > 2 * sigma
+    rms = float(np.sqrt(np.mean(values**2)))
+    return {"rms": rms, "significance": trend["significance"], "trend": trend["degree"],
+            "growth": {0: "constant", 1: "growing linearly", 2: "growing like t^2"}.get(trend["degree"], "-"),
+            "sign": int(np.sign(fitted[-1])) if len(fitted) else 0,
+            "onset": next((i for i in range(len(above)) if above[i:].all()), None),
+            "flagged": bool(trend["significance"] > threshold and rms > 2 * sigma)}
+
+
 def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
     """Which channels and frames carry the mismatch, in numbers and in words.
 
@@ -194,26 +220,20 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
         if not np.isfinite(sigma) or len(values) < 5:
             continue
         sigma = max(sigma, 1e-9)
-        trend = polynomial_trend(t, values, sigma)
-        fitted = np.polyval(trend["coefficients"], t) if trend["degree"] is not None else np.zeros_like(t)
-        above = np.abs(fitted) > 2 * sigma
-        onset = next((int(idx[i]) for i in range(len(above)) if above[i:].all()), None)
-        rms = float(np.sqrt(np.mean(values**2)))
-        is_flagged = bool(trend["significance"] > threshold and rms > 2 * sigma)
-        growth = {0: "constant", 1: "growing linearly", 2: "growing like t^2"}.get(trend["degree"], "-")
-        report[name] = {"rms": rms, "noise": sigma, "unit": UNITS[name],
-                        "significance": trend["significance"], "trend": trend["degree"],
-                        "growth": growth, "from_frame": onset, "flagged": is_flagged}
-        if is_flagged:
+        trend = channel_trend(t, values, sigma, threshold)
+        onset = None if trend["onset"] is None else int(idx[trend["onset"]])
+        report[name] = {"rms": trend["rms"], "noise": sigma, "unit": UNITS[name],
+                        "significance": trend["significance"], "trend": trend["trend"],
+                        "growth": trend["growth"], "from_frame": onset, "flagged": trend["flagged"]}
+        if trend["flagged"]:
             flagged.append(name)
-            sign = float(np.sign(fitted[-1] if len(fitted) else 0.0))
             direction = {"centroid_x": {1: "right", -1: "left"}, "centroid_y": {1: "down", -1: "up"},
                          "scale": {1: "larger (nearer)", -1: "smaller (farther)"},
                          "shape": {1: "longer", -1: "shorter"},
-                         "orientation": {1: "turned clockwise", -1: "turned counter-clockwise"}}[name].get(int(sign), "")
+                         "orientation": {1: "turned clockwise", -1: "turned counter-clockwise"}}[name].get(trend["sign"], "")
             start = f" from frame {onset} on" if onset is not None else ""
-            words.append(f"{name}: observed {direction} than fitted{start}, {growth}; RMS "
-                         f"{rms:.3g} {UNITS[name]} vs noise {sigma:.2g} ({trend['significance']:.0f} sigma)")
+            words.append(f"{name}: observed {direction} than fitted{start}, {trend['growth']}; RMS "
+                         f"{trend['rms']:.3g} {UNITS[name]} vs noise {sigma:.2g} ({trend['significance']:.0f} sigma)")
     quiet = [name for name in report if name not in flagged]
     if quiet:
         words.append(f"at noise level: {', '.join(quiet)}")

@@ -151,6 +151,18 @@ def table(rows: list[dict]) -> str:
 COEFFICIENTS = ("drag_coefficient", "lift_coefficient")
 
 
+def _halved(r: dict) -> bool:
+    """Whether a row's held-out error after its named effects is at most half of the baseline's."""
+    return r["heldout_px_after"] <= 0.5 * r["heldout_px_before"]
+
+
+def _add_counts(total: dict, counts: dict) -> None:
+    """Add :func:`score`'s ``counts`` of one set into ``total`` (pairs summed, names joined)."""
+    for key, value in counts.items():
+        total[key] = total.get(key, []) + value if key == "wrong_names" else \
+            [a + b for a, b in zip(total.get(key, [0, 0]), value)]
+
+
 def score(rows: list[dict]) -> dict:
     """The issue's targets counted over ``rows`` (:func:`row`): right verdicts on effect cases,
     quiet controls, recordings with a name that is not hidden, held-out error at least halved
@@ -165,7 +177,7 @@ def score(rows: list[dict]) -> dict:
         "effect_right": [len(named), len(effect)],
         "controls_quiet": [sum(r["right"] for r in controls), len(controls)],
         "wrong_names": sorted(r["recording"] for r in rows if set(r["verdict"]) - set(r["truth"])),
-        "heldout_halved": [sum(r["heldout_px_after"] <= 0.5 * r["heldout_px_before"] for r in named), len(named)],
+        "heldout_halved": [sum(_halved(r) for r in named), len(named)],
         "coefficients_within_25pc": [sum(abs(f - t) <= 0.25 * abs(t) for _, f, t in coefficients), len(coefficients)],
         "concealed": [sum(r["concealed"] for r in rows), len(rows)],
     }
@@ -223,10 +235,7 @@ def scoreboard() -> str:
             counts = score(rows)
             above = [r for r in rows if r["truth"] and r["recording"] not in below and r["recording"] in exact]
             counts["above_limit"] = [sum(r["right"] for r in above), len(above)]
-            total = totals.setdefault(masks, {})
-            for key, value in counts.items():
-                total[key] = total.get(key, []) + value if key == "wrong_names" else \
-                    [a + b for a, b in zip(total.get(key, [0, 0]), value)]
+            _add_counts(totals.setdefault(masks, {}), counts)
             lines.append(_board_row(label, masks, counts))
         if below:
             lines.append(f"| {label} | below the exact-mask limit | {', '.join(below)} | | | | | |")
@@ -246,6 +255,7 @@ def weights(weight: float, root: Path = OUT.parent) -> str:
     changed = ["| set | recording | hidden | verdict, " + f"{default:g} | verdict, {weight:g} "
                "| held-out px after, " + f"{default:g} / {weight:g} |", "|---|---|---|---|---|---|"]
     totals: dict = {}
+    run_at_both = 0
     for label, name in SETS.items():
         pair = [root / name / "summary.json", root / f"{name}_chroma{weight:g}" / "summary.json"]
         if not all(f.exists() for f in pair):
@@ -254,20 +264,16 @@ def weights(weight: float, root: Path = OUT.parent) -> str:
         common = sorted(set(rows[0]) & set(rows[1]))
         for w, by_name in zip((default, weight), rows):
             counts = score([by_name[n] for n in common])
-            counts["run"] = [len(common), 0]
-            total = totals.setdefault(w, {})
-            for key, value in counts.items():
-                total[key] = total.get(key, []) + value if key == "wrong_names" else \
-                    [a + b for a, b in zip(total.get(key, [0, 0]), value)]
+            _add_counts(totals.setdefault(w, {}), counts)
             lines.append(_board_row(label, f"{w:g}", counts, str(len(common))))
+        run_at_both += len(common)
         for n in common:
             a, b = rows[0][n], rows[1][n]
-            halved = [r["right"] and r["heldout_px_after"] <= 0.5 * r["heldout_px_before"] for r in (a, b)]
-            if _verdict(a) != _verdict(b) or halved[0] != halved[1]:
+            if _verdict(a) != _verdict(b) or (a["right"] and _halved(a)) != (b["right"] and _halved(b)):
                 changed.append(f"| {label} | {n} | {', '.join(a['truth']) or 'nothing'} | {_verdict(a)} ({_right(a)}) "
                                f"| {_verdict(b)} ({_right(b)}) | {a['heldout_px_after']:.2f} / {b['heldout_px_after']:.2f} |")
     for w, counts in totals.items():
-        lines.append(_board_row("**all**", f"{w:g}", counts, str(counts["run"][0])))
+        lines.append(_board_row("**all**", f"{w:g}", counts, str(run_at_both)))
     return "\n".join(lines) + "\n\nVerdict or held-out halving differs:\n\n" + "\n".join(changed)
 
 
