@@ -468,3 +468,51 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
             expected = torch.zeros_like(base) if frozen[column] else (moved - base) / step
             assert torch.allclose(jac[:, column], expected, rtol=1e-6, atol=1e-9), column
     assert int(frozen.sum()) == (3 if ball else 0)  # the offset reveals a sphere's spin, none its orientation
+
+
+@pytest.mark.parametrize("effects", [("quadratic_drag", "com_offset"), ("time_scale",)])
+def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
+    """The screening's starts run in lockstep (_lm_many): force and body effects' starts share
+    one flight and render per Jacobian and per round of trial steps, a clock's run one by one, and
+    each start ends where its own LM run ends (to 1e-10 or so: the batch's RK4 grid and rounding)."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("quadratic_drag", {"drag_coefficient": 0.8})
+    video = dv.VideoProblem(problem)
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(model)
+    used = video.problem.used.cpu().numpy().astype(bool)
+    extended = video._extend(model, effects)
+    starts = [extended]
+    for name in effects:
+        for pname, value in extended.values[name].items():
+            for sign in (1.0, -1.0):
+                values = {n: dict(p) for n, p in extended.values.items()}
+                values[name][pname] = value + sign * dv.EFFECT_SCALES[pname]
+                starts.append(dv._Model(extended.cands, values, extended.edge))
+    flights = []
+    render = video._fitted_moments
+
+    def counted(cands, effects_):
+        flights.append(len(cands))
+        return render(cands, effects_)
+
+    video._fitted_moments = counted
+    together = video._lm_many(starts, used, 3)
+    batched_flights = len(flights)
+    flights.clear()
+    alone = [video._lm(start, used, 3) for start in starts]
+    for (model_a, resid_a, jac_a), (model_b, resid_b, jac_b) in zip(together, alone):
+        # residuals in noise units, Jacobian entries up to ~15 per scaled unit
+        assert float((resid_a - resid_b).abs().max()) < 1e-7
+        assert float((jac_a - jac_b).abs().max()) < 1e-6
+        for name in effects:
+            for pname, value in model_b.values[name].items():
+                # within a millionth of the parameter's scale (rounding and RK4 grid differences)
+                assert float((model_a.values[name][pname] - value).abs().max()) < 1e-6 * dv.EFFECT_SCALES[pname]
+        assert model_a.edge == pytest.approx(model_b.edge, abs=1e-9)
+    # the drag's one start (1 + 2 * 1) and the offset's six (2 * 3) share each flight; a clock's do not
+    if video._batchable(extended):
+        assert batched_flights * 3 < len(flights)
+    else:
+        assert batched_flights > len(flights) - len(starts)  # one by one (a clock column is its own flight)

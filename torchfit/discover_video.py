@@ -295,6 +295,35 @@ class _Model:
     edge: tuple[float, float] = (0.0, 0.0)
 
 
+@dataclass(eq=False)
+class _Run:
+    """One start's Levenberg-Marquardt state in :meth:`VideoProblem._lm_many`."""
+
+    model: _Model
+    resid: Tensor
+    jac: Tensor
+    cost: float
+    damping: float = 1e-3
+    decrease: float = 0.0
+
+
+def _stacked_values(parts: Sequence[tuple[dict, int]]) -> dict:
+    """One batch's effect values from several models' ``(values, rows)``: each parameter, shared
+    (its null value's shape) or per row ((rows,) or (rows, 3)), becomes per row and the models'
+    rows are concatenated. The models hold the same effects."""
+    out = {}
+    for name, params in parts[0][0].items():
+        out[name] = {}
+        for pname in params:
+            shared_dim = torch.as_tensor(EFFECTS[name].null_params[pname]).dim()
+            pieces = []
+            for values, rows in parts:
+                value = torch.as_tensor(values[name][pname], dtype=torch.float64)
+                pieces.append(value.expand(rows, *value.shape) if value.dim() == shared_dim else value)
+            out[name][pname] = torch.cat(pieces)
+    return out
+
+
 class VideoProblem:
     """Silhouettes of one recording as a :class:`torchfit.discover.SelectionProblem`.
 
@@ -489,30 +518,80 @@ class VideoProblem:
         edge bias's two columns only move the observed outlines, so they reuse the unmoved render.
         Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the covariance skip them.
         """
-        n_extra = self._extra_count(model)
-        n_effect = n_extra - 2  # the extras are the effects' parameters, then the edge bias's two
-        free = torch.nonzero(~self._frozen(model)[:14]).flatten()
-        zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
-        values, batched = self._stepped_values(model, 1 + len(free), step)
-        with torch.no_grad():
+        return self._jacobians([model], mask, step)[0]
+
+    def _jacobians(self, models: Sequence[_Model], mask: Tensor,
+                   step: float = 1e-3) -> list[tuple[Tensor, Tensor]]:
+        """:meth:`_jacobian` of several models whose batched rows share one flight and render.
+
+        Models with a clock or lens effect must come one at a time (:meth:`_batchable`).
+        """
+        plans = []
+        for model in models:
+            free = torch.nonzero(~self._frozen(model)[:14]).flatten()
+            values, batched = self._stepped_values(model, 1 + len(free), step)
             state = torch.zeros(1 + len(free) + len(batched), 14, dtype=torch.float64)
             state[1 + torch.arange(len(free)), free] = step
+            zero_extra = torch.zeros(self._extra_count(model), dtype=torch.float64)
             cands, _, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            fitted = self._fitted_moments(cands, self.effects(values))
-            rows = self._vector_of(fitted, edge, mask)  # (1 + F + E, N)
-            base = rows[0]
-            jac = base.new_zeros(len(base), 14 + n_extra)
-            jac[:, free.to(jac.device)] = ((rows[1:1 + len(free)] - base) / step).T
-            for row, column in enumerate(batched, start=1 + len(free)):
-                jac[:, 14 + column] = (rows[row] - base) / step
-            unmoved = tuple(m[:1] for m in fitted)
-            for j in sorted(set(range(n_extra)) - set(batched)):
-                shifted = zero_extra.clone()
-                shifted[j] = step
-                cands, effects, edge = self._build(model, zero_state, shifted)
-                moved = self._vector(cands, effects, edge, mask) if j < n_effect else self._vector_of(unmoved, edge, mask)
-                jac[:, 14 + j] = (moved[0] - base) / step
+            plans.append(((cands, values, edge), free, batched))
+        with torch.no_grad():
+            evaluated = self._evaluate([plan[0] for plan in plans], mask)
+            return [self._assemble_jacobian(model, fitted, rows, free, batched, mask, step)
+                    for model, (_, free, batched), (fitted, rows) in zip(models, plans, evaluated)]
+
+    def _assemble_jacobian(self, model: _Model, fitted: tuple[Tensor, Tensor, Tensor], rows: Tensor, free: Tensor,
+                           batched: list[int], mask: Tensor, step: float) -> tuple[Tensor, Tensor]:
+        """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N) and their fitted
+        moments; the columns not in the batch (clock, lens, edge bias) are computed here."""
+        n_extra = self._extra_count(model)
+        n_effect = n_extra - 2  # the extras are the effects' parameters, then the edge bias's two
+        zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
+        base = rows[0]
+        jac = base.new_zeros(len(base), 14 + n_extra)
+        jac[:, free.to(jac.device)] = ((rows[1:1 + len(free)] - base) / step).T
+        for row, column in enumerate(batched, start=1 + len(free)):
+            jac[:, 14 + column] = (rows[row] - base) / step
+        unmoved = tuple(m[:1] for m in fitted)
+        for j in sorted(set(range(n_extra)) - set(batched)):
+            shifted = zero_extra.clone()
+            shifted[j] = step
+            cands, effects, edge = self._build(model, zero_state, shifted)
+            moved = self._vector(cands, effects, edge, mask) if j < n_effect else self._vector_of(unmoved, edge, mask)
+            jac[:, 14 + j] = (moved[0] - base) / step
         return base.double(), jac.double()
+
+    def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, float]]],
+                  mask: Tensor) -> list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]]:
+        """Several models' rows in one flight and render.
+
+        Args:
+            blocks: per model, its B_k rows' candidates, effect values ``{name: {param: value}}``
+                (each shared, of its null value's shape, or one per row, (B_k,) or (B_k, 3)) and
+                edge bias. With more than one block, every effect must be a force or body effect.
+
+        Returns:
+            Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + 2)
+            vectors (:meth:`_vector`).
+        """
+        if len(blocks) == 1:
+            cands, values, _ = blocks[0]
+        else:
+            cands = Candidates(*(torch.cat([getattr(block[0], f) for block in blocks]) for f in blocks[0][0].fields()))
+            values = _stacked_values([(block[1], len(block[0])) for block in blocks])
+        fitted = self._fitted_moments(cands, self.effects(values))
+        out, start = [], 0
+        for block_cands, _, edge in blocks:
+            part = tuple(m[start:start + len(block_cands)] for m in fitted)
+            out.append((part, self._vector_of(part, edge, mask)))
+            start += len(block_cands)
+        return out
+
+    @staticmethod
+    def _batchable(model: _Model) -> bool:
+        """Whether ``model``'s rows can share a flight and render with another model's: all its
+        effects take one parameter value per row (force and body effects)."""
+        return all(EFFECTS[name].kind in ("force", "body") for name in model.values)
 
     @staticmethod
     def _stepped_values(model: _Model, first: int, step: float) -> tuple[dict, list[int]]:
@@ -552,45 +631,68 @@ class VideoProblem:
         """Levenberg-Marquardt from ``model`` on the frames in ``mask``; returns the model, the
         residual and the Jacobian at it. Stops early when no step lowers the cost, or when an
         accepted one lowers it by less than ``tolerance`` of itself."""
+        return self._lm_many([model], mask, iterations, tolerance)[0]
+
+    def _lm_many(self, models: Sequence[_Model], mask: np.ndarray, iterations: int,
+                 tolerance: float = 1e-5) -> list[tuple[_Model, Tensor, Tensor]]:
+        """:meth:`_lm` from each of several starts, in lockstep: every iteration's Jacobians, and
+        every round of trial steps, of the starts still running share one flight and render (the
+        screening's starts, :meth:`_screen`; a flight of a few rows costs its integrator's calls,
+        not its size). Each start keeps its own damping and stopping, as alone. Starts with a
+        clock or lens effect (:meth:`_batchable`) run one after another."""
+        if len(models) > 1 and not all(self._batchable(model) for model in models):
+            return [self._lm_many([model], mask, iterations, tolerance)[0] for model in models]
         mask_t = torch.as_tensor(mask, device=self.problem.masks.device) & self.problem.used
-        resid, jac = self._jacobian(model, mask_t)
-        cost = self._cost(resid)
-        damping = 1e-3
+        runs = [_Run(model, resid, jac, self._cost(resid))
+                for model, (resid, jac) in zip(models, self._jacobians(models, mask_t))]
+        running = list(runs)
         for _ in range(iterations):
-            good = torch.isfinite(resid)
-            j, r = jac[good], resid[good]
-            jtj = j.T @ j
-            grad = j.T @ r
-            # Marquardt's scaling plus a floor of LM_FLOOR times the largest curvature: directions
-            # the data barely sees (a ball's orientation and spin) would otherwise take long steps
-            # where the linear model fails, and every trial would be refused
-            scale = jtj.diagonal() + LM_FLOOR * float(jtj.diagonal().max()) + 1e-12
-            improved = False
+            systems = {}
+            for run in running:
+                good = torch.isfinite(run.resid)
+                j, r = run.jac[good], run.resid[good]
+                jtj = j.T @ j
+                # Marquardt's scaling plus a floor of LM_FLOOR times the largest curvature: directions
+                # the data barely sees (a ball's orientation and spin) would otherwise take long steps
+                # where the linear model fails, and every trial would be refused
+                systems[id(run)] = (jtj, j.T @ r, jtj.diagonal() + LM_FLOOR * float(jtj.diagonal().max()) + 1e-12)
+            searching, accepted = list(running), []
             for _ in range(8):
-                delta = -torch.linalg.solve(jtj + damping * torch.diag(scale), grad)
-                with torch.no_grad():
-                    try:
-                        cands, effects, edge = self._build(model, delta[:14][None], delta[14:])
-                    except ValueError:  # the step leaves an effect's domain (e.g. a clock factor <= 0)
-                        damping *= 4
-                        continue
-                    trial = self._vector(cands, effects, edge, mask_t)[0].double()
-                trial_cost = self._cost(trial)
-                if trial_cost < cost:
-                    model = _Model(cands.rebase(), {e.name: {k: v.detach().cpu().clone() for k, v in e.values().items()}
-                                                    for e in effects}, edge)
-                    damping = max(damping / 3, 1e-7)
-                    improved = True
+                trials = []
+                for run in searching:
+                    jtj, grad, scale = systems[id(run)]
+                    delta = -torch.linalg.solve(jtj + run.damping * torch.diag(scale), grad)
+                    with torch.no_grad():
+                        try:
+                            cands, effects, edge = self._build(run.model, delta[:14][None], delta[14:])
+                        except ValueError:  # the step leaves an effect's domain (e.g. a clock factor <= 0)
+                            run.damping *= 4
+                            continue
+                    trials.append((run, cands, {e.name: e.values() for e in effects}, edge))
+                if trials:
+                    with torch.no_grad():
+                        evaluated = self._evaluate([trial[1:] for trial in trials], mask_t)
+                    for (run, cands, values, edge), (_, vector) in zip(trials, evaluated):
+                        trial_cost = self._cost(vector[0].double())
+                        if trial_cost < run.cost:
+                            run.model = _Model(cands.rebase(), {name: {k: v.cpu().clone() for k, v in params.items()}
+                                                                for name, params in values.items()}, edge)
+                            run.damping = max(run.damping / 3, 1e-7)
+                            run.decrease = (run.cost - trial_cost) / max(run.cost, 1e-12)
+                            run.cost = trial_cost
+                            accepted.append(run)
+                        else:
+                            run.damping *= 4
+                searching = [run for run in searching if run not in accepted]
+                if not searching:
                     break
-                damping *= 4
-            if not improved:
+            for run, (resid, jac) in zip(accepted, self._jacobians([run.model for run in accepted], mask_t)
+                                         if accepted else []):
+                run.resid, run.jac = resid, jac
+            running = [run for run in accepted if run.decrease >= tolerance]
+            if not running:
                 break
-            decrease = (cost - trial_cost) / max(cost, 1e-12)
-            cost = trial_cost
-            resid, jac = self._jacobian(model, mask_t)
-            if decrease < tolerance:
-                break
-        return model, resid, jac
+        return [(run.model, run.resid, run.jac) for run in runs]
 
     def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float], dict]:
         """Standard errors of the effect parameters, of the edge bias's two terms (pixels), and each
@@ -664,7 +766,7 @@ class VideoProblem:
         Starts: ``model`` (the new effects at null) and, for each parameter component of ``new``,
         the same moved one ``EFFECT_SCALES`` unit either side. Each runs ``SCREEN_ITERATIONS`` LM
         iterations on the frames in ``mask``; returns the start with the lowest cost and where
-        its screening ended."""
+        its screening ended (the starts run side by side, :meth:`_lm_many`)."""
         starts = [model]
         for name in new:
             for pname, value in model.values[name].items():
@@ -677,8 +779,7 @@ class VideoProblem:
                         values[name][pname] = moved.view_as(value)
                         starts.append(_Model(model.cands, values, model.edge))
         best = None
-        for start in starts:
-            screened, resid, _ = self._lm(start, mask, SCREEN_ITERATIONS)
+        for start, (screened, resid, _) in zip(starts, self._lm_many(starts, mask, SCREEN_ITERATIONS)):
             cost = self._cost(resid)
             if best is None or cost < best[0]:
                 best = (cost, start, screened)
