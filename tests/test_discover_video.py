@@ -438,10 +438,11 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
 
 @pytest.mark.parametrize("ball", [False, True])
 def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
-    """The batched Jacobian (free state columns and the force and body effects' parameters in one
-    render, the clock's by its own, the edge bias's columns reusing the unmoved render) equals the
-    plain definition: move one scaled parameter by the step, recompute the whole residual vector.
-    A sphere's held-fixed orientation columns are zero (its spin is seen through the offset)."""
+    """The batched Jacobian (free state columns and every effect parameter in one render, the
+    clock's included, each row on its own clock; the edge bias's columns reusing the unmoved
+    render) equals the plain definition: move one scaled parameter by the step, recompute the
+    whole residual vector. A sphere's held-fixed orientation columns are zero (its spin is seen
+    through the offset)."""
     import torchfit.discover_video as dv
 
     shape = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0) if ball else None
@@ -454,8 +455,11 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
     model.values["com_offset"]["offset"] = torch.tensor([0.002, -0.001, 0.003], dtype=F64)
     mask = video.problem.used
     step = 1e-3
-    # the clock (extra 0) is stepped alone, drag's coefficient and the offset's three in the batch
-    assert video._stepped_values(model, 5, step)[1] == [1, 2, 3, 4]
+    # rows 5..9 of the batch step extras 0..4 (the clock, drag's coefficient, the offset's three)
+    values = video._stepped_values(model, 5, step)
+    rows = torch.cat([v.reshape(10, -1) for params in values.values() for v in params.values()], 1)  # (10, 5)
+    assert torch.equal(rows[:5], rows[:1].expand(5, 5))
+    assert torch.equal((rows[5:] - rows[0]) != 0, torch.eye(5, dtype=torch.bool))
     base, jac = video._jacobian(model, mask, step)
     n = 14 + video._extra_count(model)
     assert jac.shape == (len(base), n)
@@ -470,11 +474,33 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
     assert int(frozen.sum()) == (3 if ball else 0)  # the offset reveals a sphere's spin, none its orientation
 
 
-@pytest.mark.parametrize("effects", [("quadratic_drag", "com_offset"), ("time_scale",)])
+def test_per_candidate_clock_and_lens_render_as_each_alone():
+    """Rows with their own clock and lens (one value per row) render as each row alone with the
+    values shared: the same areas, centroids and covariances (float64, to rounding)."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.02})
+    video = dv.VideoProblem(problem)
+    one = truth.select(torch.zeros(1, dtype=torch.long))
+    three = truth.select(torch.zeros(3, dtype=torch.long))
+    scales, k1, k2 = (torch.tensor(v, dtype=F64) for v in ([0.97, 1.0, 1.03], [-0.2, 0.0, 0.1], [0.05, 0.0, -0.03]))
+    values = {"time_scale": {"time_scale": scales}, "lens_distortion": {"k1": k1, "k2": k2}}
+    with torch.no_grad():
+        together = video._fitted_moments(three, video.effects(values))
+        for b in range(3):
+            alone = video._fitted_moments(one, video.effects(
+                {"time_scale": {"time_scale": scales[b]}, "lens_distortion": {"k1": k1[b], "k2": k2[b]}}))
+            for moment_together, moment_alone in zip(together, alone):
+                torch.testing.assert_close(moment_together[b], moment_alone[0], rtol=1e-10, atol=1e-10)
+        # and the rows differ: the clock and the lens move the silhouettes by pixels
+        assert float((together[1][0] - together[1][2]).abs().max()) > 1.0
+
+
+@pytest.mark.parametrize("effects", [("quadratic_drag", "com_offset"), ("time_scale",), ("lens_distortion",)])
 def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
-    """The screening's starts run in lockstep (_lm_many): force and body effects' starts share
-    one flight and render per Jacobian and per round of trial steps, a clock's run one by one, and
-    each start ends where its own LM run ends (to 1e-10 or so: the batch's RK4 grid and rounding)."""
+    """The screening's starts run in lockstep (_lm_many): every start, a clock's and a lens's
+    included, shares one flight and render per Jacobian and per round of trial steps, and each
+    start ends where its own LM run ends (to 1e-8 or so: the batch's RK4 grid and rounding)."""
     import torchfit.discover_video as dv
 
     problem, truth = _synthetic("quadratic_drag", {"drag_coefficient": 0.8})
@@ -508,11 +534,8 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
         assert float((jac_a - jac_b).abs().max()) < 1e-6
         for name in effects:
             for pname, value in model_b.values[name].items():
-                # within a millionth of the parameter's scale (rounding and RK4 grid differences)
-                assert float((model_a.values[name][pname] - value).abs().max()) < 1e-6 * dv.EFFECT_SCALES[pname]
-        assert model_a.edge == pytest.approx(model_b.edge, abs=1e-9)
-    # the drag's one start (1 + 2 * 1) and the offset's six (2 * 3) share each flight; a clock's do not
-    if video._batchable(extended):
-        assert batched_flights * 3 < len(flights)
-    else:
-        assert batched_flights > len(flights) - len(starts)  # one by one (a clock column is its own flight)
+                # within 1e-5 of the parameter's scale (rounding and RK4 grid differences)
+                assert float((model_a.values[name][pname] - value).abs().max()) < 1e-5 * dv.EFFECT_SCALES[pname]
+        assert model_a.edge == pytest.approx(model_b.edge, abs=1e-8)
+    # drag and offset: 9 starts, a clock's 3, a lens's 5, each batch sharing every flight
+    assert batched_flights * 2 < len(flights)

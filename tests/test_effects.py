@@ -189,6 +189,29 @@ def test_body_and_camera_effect_gradcheck():
                           torch.tensor([[-2.3e-3, 0.0, 2.3e-3]], dtype=F64))
 
 
+def test_per_candidate_clock_and_lens_act_on_each_candidate_as_alone():
+    """A (B,) clock's rate is 1/s per candidate (true_times' slope), and a (B,) lens distorts the
+    B·T candidate-major rows the renderer flattens with candidate ``n // T``'s coefficients."""
+    from torchfit.effects import clock_rate
+
+    scales = torch.tensor([0.98, 1.0, 1.05], dtype=F64)
+    clock = make_effect("time_scale", area=1.0, time_scale=scales).double()
+    times = torch.linspace(0.1, 0.5, 5, dtype=F64)
+    rate = clock_rate([clock, make_effect("quadratic_drag", area=1.0).double()])
+    slope = (clock.true_times(times)[:, -1] - times[0]) / (times[-1] - times[0])
+    torch.testing.assert_close(rate.detach(), 1 / scales)
+    torch.testing.assert_close(slope.detach(), 1 / scales)
+    assert clock_rate([make_effect("magnus", area=1.0)]) is None
+    k1, k2 = torch.tensor([-0.2, 0.0, 0.1], dtype=F64), torch.tensor([0.05, 0.0, -0.02], dtype=F64)
+    lens = make_effect("lens_distortion", area=1.0, k1=k1, k2=k2).double()
+    points = torch.randn(3 * 4, 6, 2, dtype=F64, generator=torch.Generator().manual_seed(5)) * 0.3
+    with torch.no_grad():
+        together = lens.distort(points)
+        for b in range(3):
+            alone = make_effect("lens_distortion", area=1.0, k1=k1[b], k2=k2[b]).double().distort(points[4 * b:4 * b + 4])
+            torch.testing.assert_close(together[4 * b:4 * b + 4], alone, rtol=0, atol=1e-15)
+
+
 def _distort(lens, k1, k2, points):
     clone = type(lens).__new__(type(lens))
     clone.__dict__ = {**lens.__dict__, "_parameters": {"k1": k1, "k2": k2}}

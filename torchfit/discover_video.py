@@ -512,53 +512,49 @@ class VideoProblem:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences).
 
         One batch of flights and renders holds the unmoved model, the free state columns' steps
-        and the steps of every parameter of a force or body effect (their parameters take one
-        value per candidate, :mod:`torchfit.effects`). A clock's and a lens's parameters need a
-        flight and render each (one time grid per ``odeint`` call, one distortion per render); the
-        edge bias's two columns only move the observed outlines, so they reuse the unmoved render.
+        and the steps of every effect parameter (each effect takes one parameter value per
+        candidate, :mod:`torchfit.effects`; a clock runs each candidate's flight on its own clock,
+        :func:`torchfit.search.candidate_poses`). The edge bias's two columns only move the
+        observed outlines, so they reuse the unmoved render.
         Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the covariance skip them.
         """
         return self._jacobians([model], mask, step)[0]
 
     def _jacobians(self, models: Sequence[_Model], mask: Tensor,
                    step: float = 1e-3) -> list[tuple[Tensor, Tensor]]:
-        """:meth:`_jacobian` of several models whose batched rows share one flight and render.
-
-        Models with a clock or lens effect must come one at a time (:meth:`_batchable`).
-        """
+        """:meth:`_jacobian` of several models whose batched rows share one flight and render."""
         plans = []
         for model in models:
             free = torch.nonzero(~self._frozen(model)[:14]).flatten()
-            values, batched = self._stepped_values(model, 1 + len(free), step)
-            state = torch.zeros(1 + len(free) + len(batched), 14, dtype=torch.float64)
+            values = self._stepped_values(model, 1 + len(free), step)
+            state = torch.zeros(1 + len(free) + self._extra_count(model) - 2, 14, dtype=torch.float64)
             state[1 + torch.arange(len(free)), free] = step
             zero_extra = torch.zeros(self._extra_count(model), dtype=torch.float64)
             cands, _, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            plans.append(((cands, values, edge), free, batched))
+            plans.append(((cands, values, edge), free))
         with torch.no_grad():
             evaluated = self._evaluate([plan[0] for plan in plans], mask)
-            return [self._assemble_jacobian(model, fitted, rows, free, batched, mask, step)
-                    for model, (_, free, batched), (fitted, rows) in zip(models, plans, evaluated)]
+            return [self._assemble_jacobian(model, fitted, rows, free, mask, step)
+                    for model, (_, free), (fitted, rows) in zip(models, plans, evaluated)]
 
     def _assemble_jacobian(self, model: _Model, fitted: tuple[Tensor, Tensor, Tensor], rows: Tensor, free: Tensor,
-                           batched: list[int], mask: Tensor, step: float) -> tuple[Tensor, Tensor]:
-        """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N) and their fitted
-        moments; the columns not in the batch (clock, lens, edge bias) are computed here."""
+                           mask: Tensor, step: float) -> tuple[Tensor, Tensor]:
+        """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N: unmoved, the F
+        free state columns' steps, the E effect parameters' steps) and their fitted moments; the
+        edge bias's two columns are computed here from the unmoved render."""
         n_extra = self._extra_count(model)
         n_effect = n_extra - 2  # the extras are the effects' parameters, then the edge bias's two
         zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
         base = rows[0]
         jac = base.new_zeros(len(base), 14 + n_extra)
         jac[:, free.to(jac.device)] = ((rows[1:1 + len(free)] - base) / step).T
-        for row, column in enumerate(batched, start=1 + len(free)):
-            jac[:, 14 + column] = (rows[row] - base) / step
+        jac[:, 14:14 + n_effect] = ((rows[1 + len(free):] - base) / step).T
         unmoved = tuple(m[:1] for m in fitted)
-        for j in sorted(set(range(n_extra)) - set(batched)):
+        for k in range(2):
             shifted = zero_extra.clone()
-            shifted[j] = step
-            cands, effects, edge = self._build(model, zero_state, shifted)
-            moved = self._vector(cands, effects, edge, mask) if j < n_effect else self._vector_of(unmoved, edge, mask)
-            jac[:, 14 + j] = (moved[0] - base) / step
+            shifted[n_effect + k] = step
+            _, _, edge = self._build(model, zero_state, shifted)
+            jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, edge, mask)[0] - base) / step
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, float]]],
@@ -568,7 +564,7 @@ class VideoProblem:
         Args:
             blocks: per model, its B_k rows' candidates, effect values ``{name: {param: value}}``
                 (each shared, of its null value's shape, or one per row, (B_k,) or (B_k, 3)) and
-                edge bias. With more than one block, every effect must be a force or body effect.
+                edge bias.
 
         Returns:
             Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + 2)
@@ -588,38 +584,27 @@ class VideoProblem:
         return out
 
     @staticmethod
-    def _batchable(model: _Model) -> bool:
-        """Whether ``model``'s rows can share a flight and render with another model's: all its
-        effects take one parameter value per row (force and body effects)."""
-        return all(EFFECTS[name].kind in ("force", "body") for name in model.values)
-
-    @staticmethod
-    def _stepped_values(model: _Model, first: int, step: float) -> tuple[dict, list[int]]:
-        """Effect values for a batch whose rows from ``first`` on each step one parameter of a
-        force or body effect by ``step`` scaled units, as :meth:`_build` steps it.
+    def _stepped_values(model: _Model, first: int, step: float) -> dict:
+        """Effect values for a batch of ``B = first + E`` rows whose rows ``first, first + 1, …``
+        each step one of the model's E effect parameters (the order of :meth:`_build`'s
+        ``extra``) by ``step`` scaled units, as :meth:`_build` steps it.
 
         Returns:
-            ``{name: {param: value}}``, the values of a force or body effect (B,) or (B, 3) with
-            ``B = first + E``, the others shared as in ``model``; and the E extras' indices (the
-            order of :meth:`_build`'s ``extra``) that rows ``first, first + 1, …`` step.
+            ``{name: {param: value}}``, every value one per row, (B,) or (B, 3).
         """
-        per_row = [name for name in model.values if EFFECTS[name].kind in ("force", "body")]
-        count = sum(torch.as_tensor(v).numel() for name in per_row for v in model.values[name].values())
-        values, batched, offset, row = {}, [], 0, first
+        count = sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
+        values, row = {}, first
         for name, params in model.values.items():
             values[name] = {}
             for pname, value in params.items():
                 value = torch.as_tensor(value, dtype=torch.float64)
                 size = value.numel()
-                if name in per_row:
-                    value = value.expand(first + count, *value.shape).clone()
-                    for k in range(size):
-                        value.view(first + count, size)[row + k, k] += step * EFFECT_SCALES.get(pname, 0.1)
-                        batched.append(offset + k)
-                    row += size
+                value = value.expand(first + count, *value.shape).clone()
+                for k in range(size):
+                    value.view(first + count, size)[row + k, k] += step * EFFECT_SCALES.get(pname, 0.1)
+                row += size
                 values[name][pname] = value
-                offset += size
-        return values, batched
+        return values
 
     @staticmethod
     def _cost(resid: Tensor) -> float:
@@ -638,10 +623,7 @@ class VideoProblem:
         """:meth:`_lm` from each of several starts, in lockstep: every iteration's Jacobians, and
         every round of trial steps, of the starts still running share one flight and render (the
         screening's starts, :meth:`_screen`; a flight of a few rows costs its integrator's calls,
-        not its size). Each start keeps its own damping and stopping, as alone. Starts with a
-        clock or lens effect (:meth:`_batchable`) run one after another."""
-        if len(models) > 1 and not all(self._batchable(model) for model in models):
-            return [self._lm_many([model], mask, iterations, tolerance)[0] for model in models]
+        not its size). Each start keeps its own damping and stopping, as alone."""
         mask_t = torch.as_tensor(mask, device=self.problem.masks.device) & self.problem.used
         runs = [_Run(model, resid, jac, self._cost(resid))
                 for model, (resid, jac) in zip(models, self._jacobians(models, mask_t))]

@@ -142,13 +142,17 @@ class FreeFlight(nn.Module):
         body: mass properties.
         gravity: (3,) or (B, 3) gravitational acceleration, camera frame, m/s^2.
         effects: extra force/torque terms, summed.
+        rate: optional () or (B,) seconds of flight per second of the integration's clock: the
+            derivative is multiplied by it (a clock effect, :func:`torchfit.effects.clock_rate`).
     """
 
-    def __init__(self, body: RigidBody, gravity: Tensor, effects: Sequence[Effect] = ()):
+    def __init__(self, body: RigidBody, gravity: Tensor, effects: Sequence[Effect] = (),
+                 rate: Tensor | None = None):
         super().__init__()
         self.body = body
         self.gravity = gravity
         self.effects = nn.ModuleList(effects)
+        self.rate = None if rate is None else (rate.unsqueeze(-1) if rate.dim() == 1 else rate)
         dtype, device = body.inertia.dtype, body.inertia.device
         self.inertia_t = body.inertia.transpose(-1, -2)
         self.inertia_inv_t = torch.linalg.inv(body.inertia).transpose(-1, -2)
@@ -178,7 +182,8 @@ class FreeFlight(nn.Module):
         # Euler's equations in body axes: I ω̇_b = τ_b − ω_b × I ω_b, then back to the world
         domega = (rot @ _matvec(rhs, self.inertia_inv_t).unsqueeze(-1)).squeeze(-1)
         dquat = ((quat @ self.xi_basis).view(batch, 4, 3) @ omega.unsqueeze(-1)).squeeze(-1)
-        return torch.cat((velocity, dquat, acceleration, domega), dim=-1)
+        derivative = torch.cat((velocity, dquat, acceleration, domega), dim=-1)
+        return derivative if self.rate is None else derivative * self.rate
 
 
 def _matvec(vectors: Tensor, matrix_t: Tensor) -> Tensor:
@@ -220,17 +225,21 @@ def integrate(
     step_size: float | None = None,
     rtol: float = 1e-7,
     atol: float = 1e-9,
+    rate: Tensor | None = None,
 ) -> Trajectory:
     """:func:`simulate` without input checks, for use inside the fit (trusts its inputs).
 
-    The quaternion of ``state0`` need not be unit; it is normalised.
+    The quaternion of ``state0`` need not be unit; it is normalised. ``rate``, () or (B,), runs
+    each flight on its own clock: ``times`` are stated seconds and ``rate`` true seconds per stated
+    second (:func:`torchfit.effects.clock_rate`), so a flight with rate ``r`` is the flight at true
+    times ``times[0] + r (times - times[0])``. Velocities in the result are per true second.
     """
     quat = state0[:, 3:7] / state0[:, 3:7].norm(dim=-1, keepdim=True)
     omega = state0[:, 10:13]
     lever = _lever(quat, body.com)
     y0 = torch.cat((state0[:, 0:3] + lever, quat,
                     state0[:, 7:10] + torch.cross(omega, lever, dim=-1), omega), dim=-1)
-    func = FreeFlight(body, gravity, effects)
+    func = FreeFlight(body, gravity, effects, rate)
     if method in FIXED_STEP_METHODS:
         if step_size is None:
             gaps = (times[1:] - times[:-1]) if len(times) > 1 else times.new_ones(1)

@@ -8,7 +8,7 @@ states its physics in one equation. There are four kinds (class attribute ``kind
 - ``"body"``: ``apply_body(body) -> RigidBody``, the mass properties the flight really has
   (``com_offset``, ``inertia``).
 - ``"clock"``: ``true_times(times) -> times``, the seconds that really elapsed at the stated
-  sample times (``time_scale``).
+  sample times, and ``rate()``, true seconds per stated second (``time_scale``).
 - ``"camera"``: a change to the projection (``lens_distortion``: ``distort``; ``rolling_shutter``:
   ``row_delay``).
 
@@ -47,6 +47,7 @@ __all__ = [
     "TimeScale",
     "Wind",
     "apply_effects",
+    "clock_rate",
     "lens_model",
     "make_effect",
     "revealed",
@@ -340,13 +341,18 @@ class TimeScale(Effect):
         super().__init__()
         self.time_scale = _as_param("time_scale", time_scale, positive=True)
 
+    def rate(self) -> Tensor:
+        """() or (B,) true seconds per stated second, ``1 / s``: the ODE run on the stated clock
+        is the true one with its derivative times this (:func:`clock_rate`)."""
+        return 1 / self.time_scale
+
     def true_times(self, times: Tensor) -> Tensor:
         """(T,) or (B, T) stated seconds -> the same shape (or (B, T)) true seconds."""
-        scale = self.time_scale.to(times)
-        if scale.dim() == 1:
-            scale = scale.unsqueeze(-1)
+        rate = self.rate().to(times)
+        if rate.dim() == 1:
+            rate = rate.unsqueeze(-1)
         start = times[..., :1]
-        return start + (times - start) / scale
+        return start + (times - start) * rate
 
 
 class LensDistortion(Effect):
@@ -368,12 +374,18 @@ class LensDistortion(Effect):
         self.k2 = _as_param("k2", k2)
 
     def distort(self, normalised: Tensor) -> Tensor:
-        """(B, ..., 2) normalised coordinates -> (B, ..., 2) distorted normalised coordinates."""
+        """(N, ..., 2) normalised coordinates -> (N, ..., 2) distorted normalised coordinates.
+
+        With (B,) parameters, one per candidate, ``N`` is ``B`` or a multiple ``B·T`` whose rows
+        are candidate-major (candidate ``b``'s T rows in a block, as the renderer flattens (B, T)
+        poses): row ``n`` takes candidate ``n // T``'s parameters.
+        """
         r2 = (normalised * normalised).sum(-1, keepdim=True)
         k1, k2 = self.k1.to(normalised), self.k2.to(normalised)
         if k1.dim() == 1:  # (B,) per candidate: broadcast over the middle dimensions
+            repeats = normalised.shape[0] // len(k1)
             shape = (-1,) + (1,) * (normalised.dim() - 1)
-            k1, k2 = k1.view(shape), k2.view(shape)
+            k1, k2 = (k.repeat_interleave(repeats).view(shape) for k in (k1, k2))
         return normalised * (1 + k1 * r2 + k2 * r2 * r2)
 
 
@@ -464,6 +476,19 @@ def split_effects(effects: Sequence[Effect]) -> dict[str, list[Effect]]:
 def lens_model(effects: Sequence[Effect]):
     """The ``distort`` of the list's lens effect (normalised coordinates), or None."""
     return next((e.distort for e in effects if isinstance(e, LensDistortion)), None)
+
+
+def clock_rate(effects: Sequence[Effect]) -> Tensor | None:
+    """() or (B,) true seconds per stated second of the list's clock effects, or None without one.
+
+    The flight on the stated clock is the true flight with the ODE's derivative times this rate
+    (the forces do not depend on time), so candidates with different clocks share one time grid
+    (:func:`torchfit.dynamics.integrate`'s ``rate``).
+    """
+    rate = None
+    for effect in split_effects(effects)["clock"]:
+        rate = effect.rate() if rate is None else rate * effect.rate()
+    return rate
 
 
 def apply_effects(effects: Sequence[Effect], body, times: Tensor):

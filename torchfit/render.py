@@ -388,7 +388,9 @@ def render_silhouettes(
             (binary) silhouettes without gradients.
         budget: bounds the memory of the pixel loop (elements per chunk).
         distort: optional lens model on normalised coordinates (see :func:`contour_lines`);
-            it sees all B·T poses at once, so its parameters must be shared by the batch.
+            it sees all B·T poses at once, candidate-major (a per-candidate lens such as
+            :meth:`torchfit.effects.LensDistortion.distort` with (B,) parameters maps row ``n``
+            to candidate ``n // T``).
 
     Returns:
         (B, T, H, W) coverage in [0, 1].

@@ -32,7 +32,7 @@ from torch.nn.utils import parametrize
 
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
-from .effects import Effect, apply_effects, lens_model
+from .effects import Effect, clock_rate, lens_model, split_effects
 from .losses import coverage_residuals, mask_moments, sample_targets, silhouette_loss
 from .render import (
     RenderMesh,
@@ -389,9 +389,9 @@ def candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int
                      effects: Sequence[Effect] = (), rotation_step: float | None = None) -> Tensor:
     """(B,) silhouette loss of the candidates over the first ``frames`` frames.
 
-    ``effects`` (:mod:`torchfit.effects`, parameters shared by the batch) change the flight:
-    forces enter the ODE, body effects the mass properties, clock effects the sample times and
-    camera effects (``lens_distortion``) the projection.
+    ``effects`` (:mod:`torchfit.effects`, parameters shared by the batch or one per candidate)
+    change the flight: forces enter the ODE, body effects the mass properties, clock effects the
+    flight's clock (:func:`candidate_poses`) and camera effects (``lens_distortion``) the projection.
     """
     cover = candidate_silhouettes(problem, cands, frames, crop, sigma, effects, rotation_step)
     loss = silhouette_loss(cover, problem.targets(crop)[:frames], problem.used[:frames].to(cover.dtype))
@@ -404,25 +404,34 @@ def candidate_poses(problem: Problem, cands: Candidates, frames: int, effects: S
 
     ``rotation_step`` bounds the RK4 step by the angle (radians) the fastest candidate turns in
     one step (default ``problem.max_rotation_step``). The integration runs in the candidates'
-    dtype (the problem's mass properties and times are cast to it).
+    dtype (the problem's mass properties and times are cast to it), on the stated times; a clock
+    effect, shared or one value per candidate, scales each flight's derivative
+    (:func:`torchfit.effects.clock_rate`), so every candidate shares one time grid and one
+    ``odeint`` call, and the step (from the stated frame interval) does not depend on the clock:
+    a candidate's flight is the same in any batch.
     """
     dtype = cands.com.dtype
     body = problem.body
     if body.com.dtype != dtype:
         body = RigidBody(body.mass.to(dtype), body.com.to(dtype), body.inertia.to(dtype))
-    body, times, forces = apply_effects(effects, body, problem.times[:frames].to(dtype))
+    kinds = split_effects(effects)
+    for effect in kinds["body"]:
+        body = effect.apply_body(body)
+    times = problem.times[:frames].to(dtype)
+    rate = clock_rate(effects)
     step = rk4_step(problem, cands.omega, times, rotation_step)
-    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step)
+    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), kinds["force"], step_size=step,
+                     rate=None if rate is None else rate.to(dtype))
     return traj.rot, traj.position
 
 
 def rk4_step(problem: Problem, omega: Tensor, times: Tensor, rotation_step: float | None = None) -> float:
     """The fixed RK4 step (seconds) for candidates spinning at ``omega`` (B, 3) over ``times``
-    ((T,) or (B, T)): the fastest turns at most ``rotation_step`` radians per step (default
+    (T,): the fastest turns at most ``rotation_step`` radians per step (default
     ``problem.max_rotation_step``), and the step lies between an eighth of the frame interval
     and the whole of it."""
     spin = float(omega.detach().norm(dim=-1).max()) if omega.numel() else 0.0
-    frame_dt = float(times[..., 1].detach().max() - times[..., 0].detach().max()) if times.shape[-1] > 1 else 1.0
+    frame_dt = float(times[1] - times[0]) if len(times) > 1 else 1.0
     turn = problem.max_rotation_step if rotation_step is None else rotation_step
     return min(frame_dt, max(turn / max(spin, 1e-6), frame_dt / 8))
 

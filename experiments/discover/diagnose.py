@@ -102,9 +102,10 @@ def _column_by_column(video: dv.VideoProblem, model, mask: torch.Tensor, step: f
 
 
 def _effects_one_by_one(video: dv.VideoProblem, model, mask: torch.Tensor, step: float = 1e-3) -> torch.Tensor:
-    """The Jacobian as the code before ``b76339b`` computed it: the free state columns in one
-    batch, then each effect parameter by its own flight and render, the edge bias's two columns
-    reusing the unmoved render."""
+    """The Jacobian as the code before ``b76339b`` computed it, and for a clock's and a lens's
+    columns the code before the clock and lens took one value per candidate (2026-11-25): the
+    free state columns in one batch, then each effect parameter by its own flight and render, the
+    edge bias's two columns reusing the unmoved render."""
     n_extra = video._extra_count(model)
     free = torch.nonzero(~video._frozen(model)[:14]).flatten()
     zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
@@ -128,7 +129,7 @@ def _effects_one_by_one(video: dv.VideoProblem, model, mask: torch.Tensor, step:
 def jacobian(folder: Path, repeats: int = 3) -> dict:
     """Seconds per Jacobian, side by side at the recording's baseline with no effect and with
     effects added: column by column (the code before ``0939874``), the effects' parameters one by
-    one (the code before ``b76339b``) and as discover computes it now; and the largest
+    one (the code before ``b76339b``; a clock's and a lens's, before 2026-11-25) and as discover computes it now; and the largest
     difference of each from discover's Jacobian."""
     video = _video(folder)
     base = video.fit((), None)
@@ -137,7 +138,8 @@ def jacobian(folder: Path, repeats: int = 3) -> dict:
     ways = {"column_by_column": lambda model: _column_by_column(video, model, mask),
             "effects_one_by_one": lambda model: _effects_one_by_one(video, model, mask),
             "discover": lambda model: video._jacobian(model, mask)[1]}
-    for effects in ((), ("quadratic_drag",), ("com_offset",), ("lens_distortion",), ("magnus", "com_offset")):
+    for effects in ((), ("quadratic_drag",), ("com_offset",), ("lens_distortion",), ("time_scale",),
+                    ("magnus", "com_offset"), ("time_scale", "com_offset")):
         model = video._extend(base.payload["model"], effects)
         seconds, jacobians = {label: [] for label in ways}, {}
         for _ in range(2):  # two rounds, best of each
