@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -34,10 +33,10 @@ def _load(name: str, path: Path):
 
 @pytest.fixture(scope="module")
 def mods():
-    os.environ.setdefault("MUJOCO_GL", "osmesa")  # before mujoco is imported
-    pytest.importorskip("mujoco")
     sys.path.insert(0, str(RECORDINGS))
     mr = _load("make_recordings", RECORDINGS / "make_recordings.py")
+    mr.offscreen_gl()  # before mujoco is imported
+    pytest.importorskip("mujoco")
     mc = _load("make_concealed", CONCEALED)
     return mr, mc
 

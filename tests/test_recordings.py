@@ -10,7 +10,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -182,12 +181,12 @@ def test_free_flight(rec):
 @pytest.mark.recordings
 def test_regenerate_small(tmp_path):
     """Regenerating tshape_small with MuJoCo reproduces the shipped ground truth."""
-    os.environ.setdefault("MUJOCO_GL", "osmesa")  # before mujoco is imported
-    pytest.importorskip("mujoco")
     spec_ = importlib.util.spec_from_file_location("make_recordings", SCRIPT)
     mr = importlib.util.module_from_spec(spec_)
     sys.modules["make_recordings"] = mr  # dataclasses need the module registered
     spec_.loader.exec_module(mr)
+    mr.offscreen_gl()  # before mujoco is imported
+    pytest.importorskip("mujoco")
     spec = next(s for s in mr.shipped_specs() if s.name == "tshape_small")
     summary = mr.make_recording(spec, tmp_path, verbose=False)
     assert summary["iou_min"] >= 0.95

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -204,7 +203,7 @@ def main(argv=None) -> int:
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     args = ap.parse_args(argv)
-    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    mr.offscreen_gl()
     if args.fresh < 0:
         raise SystemExit(f"--fresh must be >= 0, got {args.fresh}")
     specs = concealed_specs(args.fresh)

@@ -609,11 +609,26 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
     return xml, _textures(spec.scene_seed), p_cam
 
 
+def offscreen_gl() -> str:
+    """Choose MuJoCo's CPU offscreen backend before mujoco is imported, and return it.
+
+    A set ``MUJOCO_GL`` is kept; otherwise OSMesa where its library is installed, else EGL (Mesa's
+    software EGL, on machines without OSMesa: it renders the same masks, checked on a concealed
+    recording in experiments/discover/README.md, 2026-11-25).
+    """
+    import ctypes.util
+
+    if "MUJOCO_GL" not in os.environ:
+        has_egl = ctypes.util.find_library("OSMesa") is None and ctypes.util.find_library("EGL") is not None
+        os.environ["MUJOCO_GL"] = "egl" if has_egl else "osmesa"
+    return os.environ["MUJOCO_GL"]
+
+
 class Scene:
     """Compiled MuJoCo model plus the world<->camera transforms."""
 
     def __init__(self, spec: RecordingSpec, mesh: trimesh.Trimesh):
-        os.environ.setdefault("MUJOCO_GL", "osmesa")  # offscreen, CPU; honours a set value
+        offscreen_gl()  # offscreen, CPU; honours a set value
         import mujoco
 
         self.mj = mujoco
@@ -1052,7 +1067,7 @@ def main(argv=None):
                          "name=mine shape=box spin_rate=5.0 position='(0.1,0.2,2.0)'")
     ap.add_argument("--list", action="store_true", help="list the shipped specs and exit")
     args = ap.parse_args(argv)
-    os.environ.setdefault("MUJOCO_GL", "osmesa")
+    offscreen_gl()
 
     if args.list:
         for s in shipped_specs():
