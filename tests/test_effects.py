@@ -190,8 +190,9 @@ def test_body_and_camera_effect_gradcheck():
 
 
 def test_per_candidate_clock_and_lens_act_on_each_candidate_as_alone():
-    """A (B,) clock's rate is 1/s per candidate (true_times' slope), and a (B,) lens distorts the
-    B·T candidate-major rows the renderer flattens with candidate ``n // T``'s coefficients."""
+    """A (B,) clock's rate is 1/s per candidate (true_times' slope), and a (B,) lens distorts (a
+    (B,) shutter delays) the B·T candidate-major rows the renderer flattens with candidate
+    ``n // T``'s coefficients."""
     from torchfit.effects import clock_rate
 
     scales = torch.tensor([0.98, 1.0, 1.05], dtype=F64)
@@ -210,6 +211,13 @@ def test_per_candidate_clock_and_lens_act_on_each_candidate_as_alone():
         for b in range(3):
             alone = make_effect("lens_distortion", area=1.0, k1=k1[b], k2=k2[b]).double().distort(points[4 * b:4 * b + 4])
             torch.testing.assert_close(together[4 * b:4 * b + 4], alone, rtol=0, atol=1e-15)
+    delays = torch.tensor([1e-5, 0.0, -2e-5], dtype=F64)
+    shutter = make_effect("rolling_shutter", area=1.0, line_delay=delays).double()
+    rows = torch.rand(3 * 4, 6, dtype=F64, generator=torch.Generator().manual_seed(6)) * 480
+    with torch.no_grad():
+        seconds = shutter.row_delay(rows, 240.0)
+        for b in range(3):
+            torch.testing.assert_close(seconds[4 * b:4 * b + 4], delays[b] * (rows[4 * b:4 * b + 4] - 240.0))
 
 
 def _distort(lens, k1, k2, points):

@@ -51,6 +51,7 @@ __all__ = [
     "lens_model",
     "make_effect",
     "revealed",
+    "shutter_model",
     "split_effects",
 ]
 
@@ -394,7 +395,8 @@ class RollingShutter(Effect):
 
     ``δ`` seconds per pixel row (line delay; readout time / image height, ~10–30 µs for a CMOS
     phone camera), ``y`` the pixel row, ``c_y`` the principal point row (the frame's stated time
-    is the centre row). Kind ``camera``: a point's image is drawn from the pose at its row's time.
+    is the centre row). Kind ``camera``: a point's image is drawn from the pose at its row's time
+    (on video, to first order in the delay: :class:`torchfit.render.Shutter`).
     """
 
     name = "rolling_shutter"
@@ -407,10 +409,14 @@ class RollingShutter(Effect):
         self.line_delay = _as_param("line_delay", line_delay)
 
     def row_delay(self, rows: Tensor, cy: float) -> Tensor:
-        """(B, ...) pixel rows -> (B, ...) seconds after the frame's stated time."""
+        """(N, ...) pixel rows -> (N, ...) seconds after the frame's stated time.
+
+        With a (B,) line delay, one per candidate, ``N`` is ``B`` or a multiple ``B·T`` of
+        candidate-major rows, as :meth:`LensDistortion.distort`.
+        """
         delay = self.line_delay.to(rows)
         if delay.dim() == 1:
-            delay = delay.view((-1,) + (1,) * (rows.dim() - 1))
+            delay = delay.repeat_interleave(rows.shape[0] // len(delay)).view((-1,) + (1,) * (rows.dim() - 1))
         return delay * (rows - cy)
 
 
@@ -489,6 +495,13 @@ def clock_rate(effects: Sequence[Effect]) -> Tensor | None:
     for effect in split_effects(effects)["clock"]:
         rate = effect.rate() if rate is None else rate * effect.rate()
     return rate
+
+
+def shutter_model(effects: Sequence[Effect], cy: float):
+    """The list's rolling shutter as ``rows -> seconds`` (:meth:`RollingShutter.row_delay` about
+    the principal point row ``cy``), or None."""
+    shutter = next((e for e in effects if isinstance(e, RollingShutter)), None)
+    return None if shutter is None else (lambda rows: shutter.row_delay(rows, cy))
 
 
 def apply_effects(effects: Sequence[Effect], body, times: Tensor):

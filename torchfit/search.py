@@ -32,10 +32,11 @@ from torch.nn.utils import parametrize
 
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
-from .effects import Effect, clock_rate, lens_model, split_effects
+from .effects import Effect, clock_rate, lens_model, shutter_model, split_effects
 from .losses import coverage_residuals, mask_moments, sample_targets, silhouette_loss
 from .render import (
     RenderMesh,
+    Shutter,
     coverage_from_lines,
     coverage_jvp,
     crop_windows,
@@ -399,8 +400,9 @@ def candidate_losses(problem: Problem, cands: Candidates, frames: int, crop: int
 
 
 def candidate_poses(problem: Problem, cands: Candidates, frames: int, effects: Sequence[Effect] = (),
-                    rotation_step: float | None = None) -> tuple[Tensor, Tensor]:
-    """(B, frames, 3, 3) rotations and (B, frames, 3) translations of the candidates' flights.
+                    rotation_step: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """(B, frames, 3, 3) rotations, (B, frames, 3) translations and (B, frames, 6) motion (the mesh
+    origin's velocity, m/s, then the angular velocity, rad/s, camera frame) of the candidates' flights.
 
     ``rotation_step`` bounds the RK4 step by the angle (radians) the fastest candidate turns in
     one step (default ``problem.max_rotation_step``). The integration runs in the candidates'
@@ -422,7 +424,7 @@ def candidate_poses(problem: Problem, cands: Candidates, frames: int, effects: S
     step = rk4_step(problem, cands.omega, times, rotation_step)
     traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), kinds["force"], step_size=step,
                      rate=None if rate is None else rate.to(dtype))
-    return traj.rot, traj.position
+    return traj.rot, traj.position, torch.cat((traj.velocity, traj.angular_velocity), -1)
 
 
 def rk4_step(problem: Problem, omega: Tensor, times: Tensor, rotation_step: float | None = None) -> float:
@@ -442,14 +444,17 @@ def candidate_lines(problem: Problem, cands: Candidates, frames: int, crop: int,
 
     ``rotation_step``: see :func:`candidate_poses`.
     """
-    rot, position = candidate_poses(problem, cands, frames, effects, rotation_step)
-    return _pose_lines(problem, rot, position, crop, effects)
+    return _pose_lines(problem, *candidate_poses(problem, cands, frames, effects, rotation_step), crop, effects)
 
 
-def _pose_lines(problem: Problem, rot: Tensor, position: Tensor, crop: int, effects: Sequence[Effect]) -> Tensor:
-    """(B, F, P, K, 3) edge lines of (B, F) poses in the first F frames' crop windows."""
+def _pose_lines(problem: Problem, rot: Tensor, position: Tensor, motion: Tensor, crop: int,
+                effects: Sequence[Effect]) -> Tensor:
+    """(B, F, P, K, 3) edge lines of (B, F) poses with their (B, F, 6) motion (used by a rolling
+    shutter) in the first F frames' crop windows."""
     windows = problem.windows(crop)[: rot.shape[1]].expand(rot.shape[0], rot.shape[1], 3)
-    return silhouette_lines(problem.mesh, problem.camera, rot, position, windows, lens_model(effects))
+    delay = shutter_model(effects, problem.camera.cy)
+    shutter = None if delay is None else Shutter(delay, motion[..., :3], motion[..., 3:])
+    return silhouette_lines(problem.mesh, problem.camera, rot, position, windows, lens_model(effects), shutter)
 
 
 def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float | None,
@@ -640,16 +645,13 @@ def _normal_equations(problem: Problem, cands: Candidates, crop: int, sigma: flo
                              -step * torch.eye(own, dtype=torch.float64, device=device)))  # (1 + 2 own, own)
         copies = len(offsets)
         wide = Candidates(*(getattr(cands, f).detach().double() for f in cands.fields()))
-        rot, position = candidate_poses(problem, _shifted(wide, offsets.repeat(count, 1)), frames, effects)
-        rot, position = rot.unflatten(0, (count, copies)), position.unflatten(0, (count, copies))
-        d_rot = (rot[:, 1:1 + own] - rot[:, 1 + own:]) / (2 * step)  # (B, own, F, 3, 3)
-        d_position = (position[:, 1:1 + own] - position[:, 1 + own:]) / (2 * step)
+        poses = candidate_poses(problem, _shifted(wide, offsets.repeat(count, 1)), frames, effects)
+        poses = [pose.unflatten(0, (count, copies)) for pose in poses]  # rotations, translations, motion
+        d_poses = [(pose[:, 1:1 + own] - pose[:, 1 + own:]) / (2 * step) for pose in poses]  # (B, own, F, ...)
     with torch.no_grad(), fwAD.dual_level():
-        dual_rot = fwAD.make_dual(rot[:, :1].expand_as(d_rot).flatten(0, 1).to(dtype).contiguous(),
-                                  d_rot.flatten(0, 1).to(dtype).contiguous())
-        dual_position = fwAD.make_dual(position[:, :1].expand_as(d_position).flatten(0, 1).to(dtype).contiguous(),
-                                       d_position.flatten(0, 1).to(dtype).contiguous())
-        dual = fwAD.unpack_dual(_pose_lines(problem, dual_rot, dual_position, crop, effects))
+        duals = [fwAD.make_dual(pose[:, :1].expand_as(d_pose).flatten(0, 1).to(dtype).contiguous(),
+                                d_pose.flatten(0, 1).to(dtype).contiguous()) for pose, d_pose in zip(poses, d_poses)]
+        dual = fwAD.unpack_dual(_pose_lines(problem, *duals, crop, effects))
         lines = dual.primal[::own]  # (B, F, P, K, 3)
         tangents = [dual.tangent.unflatten(0, (count, own)).transpose(1, 2)]  # (B, F, own, P, K, 3)
         for param, flat in shared:
