@@ -327,3 +327,26 @@ def test_weights_side_by_side_counts_only_recordings_run_at_both(tmp_path):
     assert "| first | drag_a | quadratic_drag | quadratic_drag (yes) | none (NO) | 1.00 / 1.00 |" in text
     assert "| first | drag_b | quadratic_drag | none (NO) | quadratic_drag (yes) | 1.00 / 1.00 |" in text
     assert "drag_only_here" not in text and "control_x" not in text.split("differs")[1]
+
+
+def test_shutter_set_is_the_controls_throws_through_a_rolling_shutter(mods):
+    """make_concealed.py --shutter: control_tshape's and control_box's specs with a 30 µs/row
+    shutter (so the same flights), whose twin has none; the bands tile the rows, each offset is
+    the delay at its centre row, and every band time of every frame and blur sub-frame is sampled."""
+    mr, mc = mods
+    specs = {s.name: s for s, _ in mc.shutter_specs()}
+    controls = {s.name: s for s, _ in mc.concealed_specs(0)}
+    assert sorted(specs) == ["control_box", "control_tshape", "shutter_box", "shutter_tshape"]
+    for shape in ("tshape", "box"):
+        name = f"shutter_{shape}"
+        assert specs[name] == controls[f"control_{shape}"].replace(name=name, line_delay=3e-5)
+        assert specs[f"control_{shape}"] == controls[f"control_{shape}"]
+        assert mc.twin_spec(specs[name]).line_delay is None
+    bands = mr.shutter_bands(specs["shutter_tshape"])
+    assert bands[0][0] == 0 and bands[-1][1] == 480 and all(b[1] == n[0] for b, n in zip(bands, bands[1:]))
+    for first, end, offset in bands:
+        assert offset == pytest.approx(3e-5 * ((first + end - 1) / 2 - 239.5), abs=1e-15)
+    assert mr.shutter_bands(controls["control_tshape"]) == []
+    times = set(mr.all_times(specs["shutter_tshape"]).tolist())
+    tf, ts = mr.sample_times(specs["shutter_tshape"])
+    assert {float(ts[3, 0] + bands[7][2]), float(tf[5] + bands[-1][2]), float(tf[0])} <= times

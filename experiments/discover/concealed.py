@@ -6,6 +6,7 @@
     python experiments/discover/concealed.py --true-masks [names...] # MuJoCo's true masks instead
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
     python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
+    python experiments/discover/concealed.py --shutter [--true-masks] # the rolling-shutter set, + rolling_shutter
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
@@ -58,13 +59,14 @@ CANDIDATES = DEFAULT_CANDIDATES  # inertia left out: see the README
 SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise model's calibration recordings
 
 
-def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None) -> dict:
+def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
+            candidates: tuple[str, ...] = CANDIDATES) -> dict:
     truth = json.loads((folder / "truth.json").read_text())
     shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
     camera = Camera.from_file(folder / "camera.json")
     settings = None if chroma_weight is None else SegmentationSettings(chroma_weight=chroma_weight)
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
-    return discover_video(problem, observation, span, candidates=CANDIDATES, settings=VIDEO_SELECTION,
+    return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           truth=truth, out_dir=out, overlay=False, progress=print)
 
 
@@ -426,9 +428,14 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
-         table_only: bool = False, against: str | None = None, chroma_weight: float | None = None) -> None:
+         table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
+         shutter: bool = False) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
-    if shipped:
+    candidates = CANDIDATES
+    if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
+        recordings, candidates = RECORDINGS.with_name("recordings_shutter"), CANDIDATES + ("rolling_shutter",)
+        out = OUT.with_name("rolling_shutter" + ("_true_masks" if true_masks else ""))
+    elif shipped:
         out = OUT.with_name("shipped")
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else "")
@@ -441,14 +448,14 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     if shipped:
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
     elif not recordings.exists():
-        sys.exit(f"no recordings in {recordings}: run MUJOCO_GL=osmesa python experiments/discover/make_concealed.py"
-                 + (f" --fresh {fresh}" if fresh else ""))
+        sys.exit(f"no recordings in {recordings}: run python experiments/discover/make_concealed.py"
+                 + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else ""))
     else:
         folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, out / folder.name, true_masks, chroma_weight)
+        content = run_one(folder, out / folder.name, true_masks, chroma_weight, candidates)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -462,6 +469,9 @@ if __name__ == "__main__":
     ap.add_argument("--true-masks", action="store_true", help="MuJoCo's true masks instead of the segmentation")
     ap.add_argument("--shipped", action="store_true", help="the shipped recordings (hide nothing)")
     ap.add_argument("--fresh", type=int, default=0, metavar="K", help="fresh set K (make_concealed.py --fresh K)")
+    ap.add_argument("--shutter", action="store_true",
+                    help="the rolling-shutter set (make_concealed.py --shutter) with rolling_shutter as a candidate "
+                         "(results/rolling_shutter[_true_masks]/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
                     help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -488,4 +498,7 @@ if __name__ == "__main__":
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
     if args.chroma_weight is not None and (args.true_masks or args.shipped or not args.chroma_weight > 0):
         ap.error(f"--chroma-weight needs a positive weight and segmented concealed recordings, got {args.chroma_weight}")
-    main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight)
+    if args.shutter and (args.fresh or args.shipped or args.chroma_weight is not None):
+        ap.error("--shutter is its own set: not with --fresh, --shipped or --chroma-weight")
+    main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
+         args.shutter)

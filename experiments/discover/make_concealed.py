@@ -15,7 +15,9 @@ Make them all (from the repository root, ~2 minutes on one core)::
 
 Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), ``--only a,b``,
 ``--list``, ``--markdown`` (print the table as Markdown, as in CONCEALED.md), ``--fresh K``
-(a fresh set from the same recipes: other seeds and background scene K, in recordings_fresh<K>/).
+(a fresh set from the same recipes: other seeds and background scene K, in recordings_fresh<K>/),
+``--shutter`` (two controls' throws through a rolling shutter, and the controls, in
+recordings_shutter/: ``shutter_specs``).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -35,6 +37,7 @@ sys.path.insert(0, str(HERE.parent / "recordings"))
 import make_recordings as mr
 
 DEFAULT_OUT = HERE / "recordings"
+SHUTTER_OUT = HERE / "recordings_shutter"
 
 # Aerodynamics: MuJoCo's ellipsoid fluid model on an invisible massless sphere of the shape's
 # reference area at the centre of mass (exactly torchfit's quadratic_drag + magnus, see
@@ -147,10 +150,24 @@ def concealed_specs(fresh: int = 0) -> list[tuple[mr.RecordingSpec, str]]:
     ]
 
 
+def shutter_specs() -> list[tuple[mr.RecordingSpec, str]]:
+    """The rolling-shutter set: control_tshape's and control_box's throws of the first set (the
+    same specs and seeds, so the same flights) through a rolling shutter of 30 µs per row (14 ms
+    to read the 480 rows, a phone's readout at 30-60 fps), and the two controls themselves."""
+    controls = {s.name: (s, what) for s, what in concealed_specs(0) if s.name in ("control_tshape", "control_box")}
+    out = []
+    for shape in ("tshape", "box"):
+        spec, what = controls[f"control_{shape}"]
+        out.append((spec.replace(name=f"shutter_{shape}", line_delay=3e-5),
+                    f"rolling shutter 30 us/row, control_{shape}'s throw"))
+        out.append((spec, what))
+    return out
+
+
 def twin_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:
     """The same recording without its hidden effect."""
     return spec.replace(fluid=False, fluid_sphere=False, fluidcoef=None, hidden_weight=None,
-                        fps_stated=None, distortion=None)
+                        fps_stated=None, distortion=None, line_delay=None)
 
 
 def _centroids(masks) -> np.ndarray:
@@ -166,7 +183,8 @@ def effect_size(spec: mr.RecordingSpec, folder: Path) -> dict:
 
     The twin starts from the same state (truth params). Force / body effects: simulated again
     without them. Clock: the same flight sampled at the stated frame times i / fps_stated.
-    Lens: the same poses projected without distortion. Twin masks are the mesh projected with the
+    Lens: the same poses projected without distortion. Rolling shutter: the flight at the frame
+    times (a global shutter). Twin masks are the mesh projected with the
     numpy rasteriser of make_recordings (matches MuJoCo's masks to IoU >= 0.95, ~0.05 px).
     """
     truth = json.loads((folder / "truth.json").read_text())
@@ -199,6 +217,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="output folder (default recordings/, or recordings_fresh<K>/)")
     ap.add_argument("--fresh", type=int, default=0, metavar="K",
                     help="a fresh set: seeds moved by 1000 K, background scene K (K >= 1)")
+    ap.add_argument("--shutter", action="store_true",
+                    help="the rolling-shutter set (shutter_specs) in recordings_shutter/")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -206,7 +226,7 @@ def main(argv=None) -> int:
     mr.offscreen_gl()
     if args.fresh < 0:
         raise SystemExit(f"--fresh must be >= 0, got {args.fresh}")
-    specs = concealed_specs(args.fresh)
+    specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)
     if args.list:
         for s, what in specs:
             print(f"{s.name:18s} {what}")
@@ -217,7 +237,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out) if args.out else fresh_folder(args.fresh)
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)

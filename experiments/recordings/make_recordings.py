@@ -124,6 +124,11 @@ class RecordingSpec:
     hidden_weight: Optional[tuple] = None
     fps_stated: Optional[float] = None  # frame rate written in the video container (None = fps)
     distortion: Optional[Sequence[float]] = None  # (k1, k2) radial, left out of camera.json
+    # rolling shutter: row y exposed at t + line_delay (y - cy), seconds per row; drawn in bands of
+    # shutter_band rows, each from the flight at its centre row's time (the object's rows only:
+    # the background does not move)
+    line_delay: Optional[float] = None
+    shutter_band: int = 4
     # where drawn throws start / end horizontally, fractions of the width
     u_start: tuple = (0.2, 0.3)
     u_end: tuple = (0.7, 0.8)
@@ -136,7 +141,7 @@ class RecordingSpec:
 
 
 _HIDDEN_FIELDS = ("ball_radius", "fluidcoef", "fluid_sphere", "hidden_weight", "fps_stated",
-                  "distortion", "u_start", "u_end", "write_effects")
+                  "distortion", "u_start", "u_end", "write_effects", "line_delay", "shutter_band")
 _SPEC_DEFAULTS = {f.name: f.default for f in dataclasses.fields(RecordingSpec)}
 MJ_FLUIDCOEF = (0.5, 0.25, 1.5, 1.0, 1.0)  # MuJoCo's defaults: blunt, slender, angular, Kutta, Magnus
 AIR_DENSITY = 1.2  # kg/m^3, torchfit.effects.AIR_DENSITY: the density the effects assume
@@ -210,6 +215,8 @@ def hidden_effects(spec: RecordingSpec, scene, mesh: trimesh.Trimesh) -> dict:
         out["time_scale"] = {"time_scale": float(spec.fps) / float(spec.fps_stated)}
     if spec.distortion is not None:
         out["lens_distortion"] = {"k1": float(spec.distortion[0]), "k2": float(spec.distortion[1])}
+    if spec.line_delay is not None:
+        out["rolling_shutter"] = {"line_delay": float(spec.line_delay)}
     return out
 
 
@@ -375,10 +382,12 @@ def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def check_ground_truth(mesh: trimesh.Trimesh, cam: dict, Rs, ts, masks,
-                       distortion=None) -> np.ndarray:
+                       distortion=None, shutter_poses=None) -> np.ndarray:
     """IoU per frame between the projected mesh at the true poses and the true masks.
 
-    With ``distortion`` the mesh is first cut into <= 5 mm triangles (straight edges bend).
+    With ``distortion`` the mesh is first cut into <= 5 mm triangles (straight edges bend). With
+    ``shutter_poses`` (per frame, ``(first row, end row, R, t)`` of each rolling-shutter band the
+    object reaches) those rows are drawn from their band's pose.
     """
     if distortion is not None:
         V, F = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, 0.005)
@@ -386,8 +395,13 @@ def check_ground_truth(mesh: trimesh.Trimesh, cam: dict, Rs, ts, masks,
         V, F = mesh.vertices, mesh.faces
     V = np.asarray(V, float)
     F = np.asarray(F)
-    return np.array([mask_iou(render_silhouette(V, F, R, t, cam, distortion=distortion), m)
-                     for R, t, m in zip(Rs, ts, masks)])
+    ious = []
+    for i, (R, t, m) in enumerate(zip(Rs, ts, masks)):
+        drawn = render_silhouette(V, F, R, t, cam, distortion=distortion)
+        for first, end, R_band, t_band in (shutter_poses[i] if shutter_poses is not None else ()):
+            drawn[first:end] = render_silhouette(V, F, R_band, t_band, cam)[first:end]
+        ious.append(mask_iou(drawn, m))
+    return np.array(ious)
 
 
 def mask_bbox(m: np.ndarray) -> list:
@@ -816,6 +830,27 @@ def sample_times(spec: RecordingSpec):
     return tf, tf[:, None] + offs[None, :]
 
 
+def shutter_bands(spec: RecordingSpec) -> list[tuple[int, int, float]]:
+    """A rolling shutter's row bands ``(first row, end row, seconds after the frame time)``, the
+    offset at the band's centre row; [] without one."""
+    if spec.line_delay is None:
+        return []
+    if spec.distortion is not None:
+        raise ValueError(f"{spec.name}: a rolling shutter with lens distortion is not supported")
+    cy = (spec.height - 1) / 2.0
+    step = int(spec.shutter_band)
+    return [(r, min(r + step, spec.height), float(spec.line_delay) * ((r + min(r + step, spec.height) - 1) / 2 - cy))
+            for r in range(0, spec.height, step)]
+
+
+def all_times(spec: RecordingSpec) -> np.ndarray:
+    """Every time the recording samples the flight: frames, blur sub-frames and shutter bands."""
+    tf, ts = sample_times(spec)
+    base = np.concatenate([tf, ts.ravel()])
+    offsets = [b[2] for b in shutter_bands(spec)]
+    return np.unique(np.concatenate([base] + [base + o for o in offsets]))
+
+
 def in_view(scene: Scene, mesh: trimesh.Trimesh, qpos_all, margin: int):
     cam = scene.cam
     V = np.asarray(mesh.vertices)
@@ -836,8 +871,7 @@ def in_view(scene: Scene, mesh: trimesh.Trimesh, qpos_all, margin: int):
 
 def resolve_ic(spec: RecordingSpec, scene: Scene, mesh: trimesh.Trimesh):
     rng = np.random.default_rng(spec.seed)
-    tf, ts = sample_times(spec)
-    times = np.unique(np.concatenate([tf, ts.ravel()]))
+    times = all_times(spec)
     explicit = all(x is not None for x in (spec.position, spec.orientation_wxyz,
                                            spec.velocity, spec.angular_velocity))
     for attempt in range(1 if explicit else spec.max_tries):
@@ -873,9 +907,11 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
 
     tf, ts = sample_times(spec)
     K = ts.shape[1]
-    times = np.unique(np.concatenate([tf, ts.ravel()]))
+    times = all_times(spec)
     qpos = scene.simulate(ic, times)
     idx = {float(t): i for i, t in enumerate(times)}
+    bands = shutter_bands(spec)
+    V_obj, F_obj = np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
     # state at t = 0 read back from MuJoCo (sanity: equals the ic)
     scene.set_state_cam(*ic)
@@ -895,8 +931,18 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
         data.qvel[:] = 0.0
         mj.mj_forward(model, data)
 
+    def object_bands(i):
+        """The shutter bands the object can reach in frame i: its rows at the frame's time
+        (projected mesh) with a margin for the motion within the readout."""
+        if not bands:
+            return []
+        R, t = scene.pose_cam(qpos[idx[float(tf[i])]])
+        rows = project(V_obj @ R.T + t, cam)[:, 1]
+        low, high = rows.min() - 40, rows.max() + 40
+        return [b for b in bands if b[1] > low and b[0] < high]
+
     masks = np.zeros((spec.n_frames, H, W), bool)
-    Rs, tvecs = [], []
+    Rs, tvecs, shutter_poses = [], [], []
     try:
         for i in range(spec.n_frames):
             # blurred, noisy colour frame
@@ -906,6 +952,14 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
                 set_qpos(qpos[idx[float(ts[i, k])]])
                 renderer.update_scene(data, camera="cam")
                 acc += renderer.render()
+            reached = object_bands(i)
+            for first, end, offset in reached:  # the object's rows, each band at its own time
+                band = np.zeros((end - first, Wr, 3), np.float64)
+                for k in range(K):
+                    set_qpos(qpos[idx[float(ts[i, k] + offset)]])
+                    renderer.update_scene(data, camera="cam")
+                    band += renderer.render()[first:end]
+                acc[first:end] = band
             if maps is not None:  # through the lens: the wide pinhole render, distorted
                 acc = cv2.remap(acc.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
@@ -922,6 +976,13 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
                 seg = np.round(cv2.remap(seg.astype(np.float32), maps[0], maps[1],
                                          cv2.INTER_NEAREST)).astype(np.int64)
             masks[i] = object_mask(seg, scene)
+            poses = []
+            for first, end, offset in reached:
+                set_qpos(qpos[idx[float(tf[i] + offset)]])
+                renderer.update_scene(data, camera="cam")
+                masks[i, first:end] = object_mask(renderer.render(), scene)[first:end]
+                poses.append((first, end, *scene.pose_cam(qpos[idx[float(tf[i] + offset)]])))
+            shutter_poses.append(poses)
             R, t = scene.pose_cam(qp)
             Rs.append(R)
             tvecs.append(t)
@@ -932,7 +993,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     # --- independent check: projected mesh.obj vs MuJoCo's segmentation ---
     mesh.export(out / "mesh.obj")
     mesh_back = trimesh.load(out / "mesh.obj", force="mesh", process=False)
-    ious = check_ground_truth(mesh_back, cam, Rs, tvecs, masks, spec.distortion)
+    ious = check_ground_truth(mesh_back, cam, Rs, tvecs, masks, spec.distortion, shutter_poses if bands else None)
     ok = bool(ious.min() >= spec.min_iou)
     if not all(m.any() for m in masks):
         ok = False
