@@ -911,7 +911,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     qpos = scene.simulate(ic, times)
     idx = {float(t): i for i, t in enumerate(times)}
     bands = shutter_bands(spec)
-    V_obj, F_obj = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    V_obj = np.asarray(mesh.vertices)
 
     # state at t = 0 read back from MuJoCo (sanity: equals the ic)
     scene.set_state_cam(*ic)
