@@ -258,7 +258,8 @@ def test_rolling_shutter_first_order_matches_each_row_rendered_at_its_own_time()
     """The first-order shutter (render.Shutter) against the exact picture: every image row
     rendered from the flight's pose at that row's time. 100 µs per row (6 ms at the image's edge,
     several times a phone's) moves the centroid by 1.5 px and the area by 2 %; the two agree to
-    0.04 px in centroid and 0.25 % in area (measured)."""
+    0.015 px in centroid and 0.12 % in area (measured; 0.034 px and 0.24 % with the row taken at
+    the frame's time instead of the moved point's)."""
     from torchfit.dynamics import simulate
     from torchfit.losses import mask_moments
     from torchfit.render import Shutter
@@ -283,9 +284,9 @@ def test_rolling_shutter_first_order_matches_each_row_rendered_at_its_own_time()
     area = [float(m[0][0]) for m in moments]
     centroid = [m[1][0] for m in moments]
     assert float((centroid[2] - centroid[0]).norm()) > 1.0  # the shutter moves the silhouette by pixels
-    assert float((centroid[1] - centroid[0]).norm()) < 0.05
+    assert float((centroid[1] - centroid[0]).norm()) < 0.025
     assert abs(area[2] - area[0]) > 0.015 * area[0]  # and changes its area by 2 %
-    assert abs(area[1] - area[0]) < 0.004 * area[0]
+    assert abs(area[1] - area[0]) < 0.002 * area[0]
     assert float((first_order - exact).abs().max()) < 0.1
 
 
