@@ -124,8 +124,8 @@ def test_rolling_shutter_refit_recovers_the_line_delay_of_row_by_row_masks():
     """Masks drawn row by row from the flight at each row's time (exact, not torchfit's first-order
     model): discover's LM, from the true flight with the shutter at null, finds the line delay
     (true 120 µs/row, a 14 ms readout of the 120 rows, as a phone's at 60 fps) within two of its
-    standard errors (measured: 118 ± 16 µs), the delay is seen (Wald statistic above 9; 55) and
-    the fit's cost falls below half the baseline refit's (75.8 -> 23.6)."""
+    standard errors (measured: 117 ± 16 µs), the delay is seen (Wald statistic above 9; 55) and
+    the fit's cost falls below half the baseline refit's (75.8 -> 22.2)."""
     import torchfit.discover_video as dv
 
     problem, truth = _synthetic("rolling_shutter", {"line_delay": 1.2e-4}, start=(-0.25, 0.05, 1.2))

@@ -290,6 +290,35 @@ def test_rolling_shutter_first_order_matches_each_row_rendered_at_its_own_time()
     assert float((first_order - exact).abs().max()) < 0.1
 
 
+def test_rolling_shutter_decides_each_contour_edge_at_its_own_time():
+    """Over the flight (22 frames, 0.02-0.23 s), the first-order shutter keeps the area of the
+    row-by-row picture within 1 % and its centroid within 0.05 px (measured: 0.56 % and 0.03 px at
+    worst). With the contour edges decided at the frame's time instead, a face seen nearly edge-on
+    was counted on the wrong side and the area was off by 10 %."""
+    from torchfit.dynamics import simulate
+    from torchfit.losses import mask_moments
+    from torchfit.render import Shutter
+
+    shape, camera, mesh, body, state = _thrown_box()
+    gravity = torch.tensor([0.0, 9.81, 0.0], dtype=F64)
+    line_delay, rows = 1e-4, torch.arange(120, dtype=F64)
+    window = full_window(camera, 1, 120, dtype=F64)
+    for frame_time in torch.arange(0.02, 0.24, 0.01, dtype=F64).tolist():
+        times = torch.cat((torch.zeros(1, dtype=F64), frame_time + line_delay * (rows - camera.cy)))
+        traj = simulate(state, times, body, gravity, step_size=1e-3)
+        each = render_silhouettes(mesh, camera, traj.rot[:, 1:], traj.position[:, 1:], window, size=(120, 160),
+                                  sigma=0.3)[0]
+        exact = each[torch.arange(120), torch.arange(120)]
+        at = simulate(state, torch.tensor([0.0, frame_time], dtype=F64), body, gravity, step_size=1e-3)
+        shutter = Shutter(lambda v: line_delay * (v - camera.cy), at.velocity[:, 1:], at.angular_velocity[:, 1:])
+        first_order = render_silhouettes(mesh, camera, at.rot[:, 1:], at.position[:, 1:], window[:, :1],
+                                         size=(120, 160), sigma=0.3, shutter=shutter)[0, 0]
+        area, centroid = (float(first_order.sum()), float(exact.sum())), [mask_moments(image[None])[1][0]
+                                                                          for image in (first_order, exact)]
+        assert abs(area[0] - area[1]) < 0.01 * area[1], frame_time
+        assert float((centroid[0] - centroid[1]).norm()) < 0.05, frame_time
+
+
 def test_rolling_shutter_render_gradcheck_float64():
     """Coverage against the line delay and the motion, through the shutter's vertex move."""
     from torchfit.render import Shutter

@@ -108,7 +108,9 @@ class Shutter:
     for a point crossing 1000 px/s at 30 µs/row; one step from the frame-time row leaves
     ``(δ ẏ)²``). The error of the first order, ``½ a Δ²`` and ``½ (ω Δ)² r``, is ~0.3 mm for a
     7 ms delay (30 µs/row, 240 rows off centre), ω 10 rad/s and a 10 cm body. Which edges are
-    contour edges is decided at the stated pose.
+    contour edges is decided at each edge's own time (the mean of its ends'): decided at the
+    frame's time instead, a face seen nearly edge-on could be counted on the wrong side and the
+    silhouette lost most of its area (a box of the rolling-shutter set, -65 % in one frame).
 
     Attributes:
         delay: (N, V) pinhole pixel rows -> (N, V) seconds after the frame's stated time
@@ -122,16 +124,24 @@ class Shutter:
     velocity: Tensor
     angular_velocity: Tensor
 
-    def move(self, camera: Camera, points: Tensor, trans: Tensor, steps: int = 1) -> Tensor:
+    def move(self, camera: Camera, points: Tensor, trans: Tensor, steps: int = 1) -> tuple[Tensor, Tensor]:
         """(N, V, 3) camera-frame points of N poses with origins ``trans`` (N, 3) -> (N, V, 3)
-        where each is at its row's time: the row where the point is then, found by ``steps``
-        fixed-point steps from its row at the frame's time."""
+        where each is at its row's time, and those (N, V) times (seconds after the frame's): the
+        row where the point is then, found by ``steps`` fixed-point steps from its row at the
+        frame's time."""
         spin = self.angular_velocity.unsqueeze(1).expand_as(points)
         speed = self.velocity.unsqueeze(1) + torch.cross(spin, points - trans.unsqueeze(1), dim=-1)
         moved = points
         for _ in range(steps + 1):
-            moved = points + self.delay(project(camera, moved)[0][..., 1]).unsqueeze(-1) * speed
-        return moved
+            delay = self.delay(project(camera, moved)[0][..., 1])
+            moved = points + delay.unsqueeze(-1) * speed
+        return moved, delay
+
+    def drift(self, rot: Tensor, trans: Tensor) -> Tensor:
+        """(N, 3) the rate of change of ``Rᵀ t`` (the camera's position in mesh coordinates,
+        negated) per second: ``Rᵀ (v - ω × t)`` for (N, 3, 3) rotations and (N, 3) origins."""
+        along = self.velocity - torch.cross(self.angular_velocity, trans, dim=-1)
+        return torch.einsum("nji,nj->ni", rot, along)
 
 
 def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
@@ -159,7 +169,8 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
     points = torch.einsum("nij,vj->nvi", rot, mesh.vertices) + trans.unsqueeze(1)  # (N, V, 3)
     centres = torch.einsum("nij,pj->npi", rot, mesh.centroids) + trans.unsqueeze(1)
     if shutter is not None:
-        points, centres = (shutter.move(camera, p, trans) for p in (points, centres))
+        points, vertex_delay = shutter.move(camera, points, trans)
+        centres = shutter.move(camera, centres, trans)[0]
     pixels, in_front = project(camera, points)  # (N, V, 2), (N, V)
     centre_px, _ = project(camera, centres)  # (N, P, 2)
     if distort is not None:
@@ -167,7 +178,12 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
     # a face faces the camera (at the origin) when n_w · x_w < 0; in mesh coordinates that is
     # o + n · (Rᵀ t) < 0
     trans_body = torch.einsum("nji,nj->ni", rot, trans)  # (N, 3)
-    facing = mesh.offsets + torch.einsum("pefk,nk->npef", mesh.normals, trans_body) < 0
+    side = mesh.offsets + torch.einsum("pefk,nk->npef", mesh.normals, trans_body)
+    if shutter is not None:  # each edge's two faces at the time its row is exposed (its ends' mean)
+        edge_delay = vertex_delay[:, mesh.edges].mean(-1)  # (N, P, E)
+        drift = torch.einsum("pefk,nk->npef", mesh.normals, shutter.drift(rot, trans))
+        side = side + edge_delay.unsqueeze(-1) * drift
+    facing = side < 0
     contour = (facing[..., 0] != facing[..., 1]) & mesh.valid  # (N, P, E)
     count = int(contour.sum(-1).max()) if contour.numel() else 0
     count = max(count, 1)
