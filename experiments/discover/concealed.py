@@ -7,6 +7,7 @@
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
     python experiments/discover/concealed.py --fresh K [names...]    # fresh set K (make_concealed.py --fresh K)
     python experiments/discover/concealed.py --shutter [--true-masks] # the rolling-shutter set, + rolling_shutter
+    python experiments/discover/concealed.py --with rolling_shutter [...] # one more candidate (results/..._with_<name>/)
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
@@ -45,6 +46,7 @@ from torchfit.discover import without_weakest_block
 from torchfit.discover_video import (
     DEFAULT_CANDIDATES,
     EDGE_FORM,
+    VIDEO_EFFECTS,
     VIDEO_SELECTION,
     discover_video,
 )
@@ -429,9 +431,9 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
-         shutter: bool = False) -> None:
+         shutter: bool = False, extra: tuple[str, ...] = ()) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
-    candidates = CANDIDATES
+    candidates = CANDIDATES + tuple(extra)
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, candidates = RECORDINGS.with_name("recordings_shutter"), CANDIDATES + ("rolling_shutter",)
         out = OUT.with_name("rolling_shutter" + ("_true_masks" if true_masks else ""))
@@ -439,7 +441,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name("shipped")
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else "")
-                            + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else ""))
+                            + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
+                            + "".join(f"_with_{name}" for name in extra))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -472,6 +475,8 @@ if __name__ == "__main__":
     ap.add_argument("--shutter", action="store_true",
                     help="the rolling-shutter set (make_concealed.py --shutter) with rolling_shutter as a candidate "
                          "(results/rolling_shutter[_true_masks]/)")
+    ap.add_argument("--with", dest="extra", action="append", default=[], choices=sorted(set(VIDEO_EFFECTS) - set(CANDIDATES)),
+                    help="one more candidate besides the defaults (repeatable; results/concealed..._with_<name>/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
                     help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -500,5 +505,7 @@ if __name__ == "__main__":
         ap.error(f"--chroma-weight needs a positive weight and segmented concealed recordings, got {args.chroma_weight}")
     if args.shutter and (args.fresh or args.shipped or args.chroma_weight is not None):
         ap.error("--shutter is its own set: not with --fresh, --shipped or --chroma-weight")
+    if args.extra and (args.shutter or args.shipped):
+        ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter)
+         args.shutter, tuple(args.extra))
