@@ -526,10 +526,11 @@ class VideoProblem:
         plans = []
         for model in models:
             free = torch.nonzero(~self._frozen(model)[:14]).flatten()
+            n_extra = self._extra_count(model)  # the effects' parameters, then the edge bias's two
             values = self._stepped_values(model, 1 + len(free), step)
-            state = torch.zeros(1 + len(free) + self._extra_count(model) - 2, 14, dtype=torch.float64)
+            state = torch.zeros(1 + len(free) + n_extra - 2, 14, dtype=torch.float64)
             state[1 + torch.arange(len(free)), free] = step
-            zero_extra = torch.zeros(self._extra_count(model), dtype=torch.float64)
+            zero_extra = torch.zeros(n_extra, dtype=torch.float64)
             cands, _, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
             plans.append(((cands, values, edge), free))
         with torch.no_grad():

@@ -135,6 +135,15 @@ def _per_candidate(param: Tensor) -> Tensor:
     return param.unsqueeze(-1) if param.dim() == 1 else param
 
 
+def _per_row(param: Tensor, like: Tensor) -> Tensor:
+    """() or (B,) parameter, cast to ``like``'s dtype, shaped to broadcast against ``like`` (N, ...)
+    whose N = B·T rows are candidate-major (row ``n`` takes candidate ``n // T``'s value)."""
+    param = param.to(like)
+    if param.dim() == 0:
+        return param
+    return param.repeat_interleave(like.shape[0] // len(param)).view((-1,) + (1,) * (like.dim() - 1))
+
+
 def _positive_float(name: str, value) -> float:
     value = float(value)
     if not math.isfinite(value) or value <= 0:
@@ -382,11 +391,7 @@ class LensDistortion(Effect):
         poses): row ``n`` takes candidate ``n // T``'s parameters.
         """
         r2 = (normalised * normalised).sum(-1, keepdim=True)
-        k1, k2 = self.k1.to(normalised), self.k2.to(normalised)
-        if k1.dim() == 1:  # (B,) per candidate: broadcast over the middle dimensions
-            repeats = normalised.shape[0] // len(k1)
-            shape = (-1,) + (1,) * (normalised.dim() - 1)
-            k1, k2 = (k.repeat_interleave(repeats).view(shape) for k in (k1, k2))
+        k1, k2 = _per_row(self.k1, normalised), _per_row(self.k2, normalised)
         return normalised * (1 + k1 * r2 + k2 * r2 * r2)
 
 
@@ -414,10 +419,7 @@ class RollingShutter(Effect):
         With a (B,) line delay, one per candidate, ``N`` is ``B`` or a multiple ``B·T`` of
         candidate-major rows, as :meth:`LensDistortion.distort`.
         """
-        delay = self.line_delay.to(rows)
-        if delay.dim() == 1:
-            delay = delay.repeat_interleave(rows.shape[0] // len(delay)).view((-1,) + (1,) * (rows.dim() - 1))
-        return delay * (rows - cy)
+        return _per_row(self.line_delay, rows) * (rows - cy)
 
 
 EFFECTS: dict[str, type[Effect]] = {

@@ -32,7 +32,7 @@ from torch.nn.utils import parametrize
 
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
-from .effects import Effect, clock_rate, lens_model, shutter_model, split_effects
+from .effects import Effect, apply_effects, clock_rate, lens_model, shutter_model
 from .losses import coverage_residuals, mask_moments, sample_targets, silhouette_loss
 from .render import (
     RenderMesh,
@@ -416,13 +416,11 @@ def candidate_poses(problem: Problem, cands: Candidates, frames: int, effects: S
     body = problem.body
     if body.com.dtype != dtype:
         body = RigidBody(body.mass.to(dtype), body.com.to(dtype), body.inertia.to(dtype))
-    kinds = split_effects(effects)
-    for effect in kinds["body"]:
-        body = effect.apply_body(body)
     times = problem.times[:frames].to(dtype)
+    body, _, forces = apply_effects(effects, body, times)  # the clock enters as a rate, not as times
     rate = clock_rate(effects)
     step = rk4_step(problem, cands.omega, times, rotation_step)
-    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), kinds["force"], step_size=step,
+    traj = integrate(cands.state(body), times, body, cands.gravity(problem.g), forces, step_size=step,
                      rate=None if rate is None else rate.to(dtype))
     return traj.rot, traj.position, torch.cat((traj.velocity, traj.angular_velocity), -1)
 

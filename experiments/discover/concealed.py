@@ -433,9 +433,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = ()) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
-    candidates = CANDIDATES + tuple(extra)
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
-        recordings, candidates = RECORDINGS.with_name("recordings_shutter"), CANDIDATES + ("rolling_shutter",)
+        recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
         out = OUT.with_name("rolling_shutter" + ("_true_masks" if true_masks else ""))
     elif shipped:
         out = OUT.with_name("shipped")
@@ -458,7 +457,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, out / folder.name, true_masks, chroma_weight, candidates)
+        content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra))
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile

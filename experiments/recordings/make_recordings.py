@@ -931,12 +931,11 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
         data.qvel[:] = 0.0
         mj.mj_forward(model, data)
 
-    def object_bands(i):
-        """The shutter bands the object can reach in frame i: its rows at the frame's time
-        (projected mesh) with a margin for the motion within the readout."""
+    def object_bands(R, t):
+        """The shutter bands the object can reach in a frame where its pose is (R, t): its rows
+        then (projected mesh) with a margin for the motion within the readout."""
         if not bands:
             return []
-        R, t = scene.pose_cam(qpos[idx[float(tf[i])]])
         rows = project(V_obj @ R.T + t, cam)[:, 1]
         low, high = rows.min() - 40, rows.max() + 40
         return [b for b in bands if b[1] > low and b[0] < high]
@@ -945,6 +944,8 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     Rs, tvecs, shutter_poses = [], [], []
     try:
         for i in range(spec.n_frames):
+            qp = qpos[idx[float(tf[i])]]  # the frame's time
+            R, t = scene.pose_cam(qp)
             # blurred, noisy colour frame
             acc = np.zeros((Hr, Wr, 3), np.float64)
             renderer.disable_segmentation_rendering()
@@ -952,7 +953,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
                 set_qpos(qpos[idx[float(ts[i, k])]])
                 renderer.update_scene(data, camera="cam")
                 acc += renderer.render()
-            reached = object_bands(i)
+            reached = object_bands(R, t)
             for first, end, offset in reached:  # the object's rows, each band at its own time
                 band = np.zeros((end - first, Wr, 3), np.float64)
                 for k in range(K):
@@ -967,7 +968,6 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             img = np.clip(np.round(img), 0, 255).astype(np.uint8)
             writer.write(img)
             # true mask + pose at the frame time
-            qp = qpos[idx[float(tf[i])]]
             set_qpos(qp)
             renderer.enable_segmentation_rendering()
             renderer.update_scene(data, camera="cam")
@@ -978,12 +978,12 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             masks[i] = object_mask(seg, scene)
             poses = []
             for first, end, offset in reached:
-                set_qpos(qpos[idx[float(tf[i] + offset)]])
+                band_qpos = qpos[idx[float(tf[i] + offset)]]
+                set_qpos(band_qpos)
                 renderer.update_scene(data, camera="cam")
                 masks[i, first:end] = object_mask(renderer.render(), scene)[first:end]
-                poses.append((first, end, *scene.pose_cam(qpos[idx[float(tf[i] + offset)]])))
+                poses.append((first, end, *scene.pose_cam(band_qpos)))
             shutter_poses.append(poses)
-            R, t = scene.pose_cam(qp)
             Rs.append(R)
             tvecs.append(t)
     finally:
