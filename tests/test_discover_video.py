@@ -143,6 +143,32 @@ def test_rolling_shutter_refit_recovers_the_line_delay_of_row_by_row_masks():
     assert video._cost(after) < 0.5 * video._cost(before)
 
 
+@pytest.mark.parametrize("effect, value, wide", [
+    ("time_scale", {"time_scale": 1.04}, False),
+    ("lens_distortion", {"k1": -0.25, "k2": 0.0}, True),  # a wide lens, the object off-centre
+    ("rolling_shutter", {"line_delay": 1.2e-4}, False),
+])
+def test_full_frame_render_of_the_true_model_draws_the_recording(effect, value, wide):
+    """The overlay's and IoU's full-frame render (``_render_full``: the fit's own flight, drawn
+    over the whole image) of the true model reproduces masks drawn with the effect (a clock by
+    stretched times, a lens, a shutter row by row), and without the effect it does not."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic(effect, value, **({"focal": 120.0, "start": (-0.45, 0.0, 1.0)} if wide else {}))
+    video = dv.VideoProblem(problem)
+    used = problem.used.numpy()
+    observed = problem.masks.numpy()[used] > 0.5
+
+    def wrong_pixels(values):
+        drawn = dv._render_full(video.problem, dv._Model(truth, values), video.effects(values))[used]
+        return (drawn != observed).sum() / observed.sum()
+
+    with_effect = wrong_pixels({effect: {k: torch.tensor(v, dtype=F64) for k, v in value.items()}})
+    without = wrong_pixels({})
+    assert with_effect < 0.01, with_effect
+    assert without > 5 * with_effect, (without, with_effect)
+
+
 def test_cli_video_discover_writes_the_contract_files(tmp_path):
     from pathlib import Path
 

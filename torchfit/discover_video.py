@@ -49,8 +49,8 @@ from .discover import (
     verdict_lines,
     wald_statistic,
 )
-from .dynamics import RigidBody, integrate
-from .effects import EFFECTS, Effect, apply_effects, lens_model, make_effect, revealed, shutter_model
+from .dynamics import RigidBody
+from .effects import EFFECTS, Effect, lens_model, make_effect, revealed, shutter_model
 from .losses import mask_moments
 from .render import RenderMesh, Shutter, crop_windows, full_window, render_silhouettes
 from .residuals import (
@@ -67,6 +67,7 @@ from .search import (
     Candidates,
     Problem,
     SearchSettings,
+    candidate_poses,
     candidate_silhouettes,
     fit,
 )
@@ -854,21 +855,20 @@ def _edge_prior(edge: tuple[float, float]) -> tuple[float, float]:
 
 
 def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> np.ndarray:
-    """(T, H, W) bool silhouettes of a model over the span, full frame."""
+    """(T, H, W) bool silhouettes of a model over the span, full frame: the flight of
+    :func:`candidate_poses`, the one the fit sees, drawn eight frames at a time."""
     frames = len(problem.times)
     with torch.no_grad():
-        body, times, forces = apply_effects(effects, problem.body, problem.times)
-        traj = integrate(model.cands.state(body), times, body, model.cands.gravity(problem.g), forces,
-                         step_size=float(problem.times[1] - problem.times[0]) / 4)
+        rot, position, motion = candidate_poses(problem, model.cands, frames, effects)
         delay = shutter_model(effects, problem.camera.cy)
         height, width = problem.masks.shape[-2:]
         out = []
         for chunk in range(0, frames, 8):
             sl = slice(chunk, min(frames, chunk + 8))
-            n = sl.stop - sl.start
-            window = full_window(problem.camera, 1, n, dtype=problem.masks.dtype, device=problem.masks.device)
-            shutter = None if delay is None else Shutter(delay, traj.velocity[:, sl], traj.angular_velocity[:, sl])
-            out.append(render_silhouettes(problem.mesh, problem.camera, traj.rot[:, sl], traj.position[:, sl], window,
+            window = full_window(problem.camera, 1, sl.stop - sl.start, dtype=problem.masks.dtype,
+                                 device=problem.masks.device)
+            shutter = None if delay is None else Shutter(delay, motion[:, sl, :3], motion[:, sl, 3:])
+            out.append(render_silhouettes(problem.mesh, problem.camera, rot[:, sl], position[:, sl], window,
                                           size=(height, width), sigma=None,
                                           distort=lens_model(effects), shutter=shutter)[0])
         return (torch.cat(out) > 0.5).cpu().numpy()
