@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from rowwise import row_by_row
 
 from torchfit.camera import Camera
 from torchfit.discover_video import EDGE_PRIOR_PX, EDGE_SHAPE_PRIOR_PX
@@ -60,8 +61,8 @@ def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0), 
     with torch.no_grad():
         true_body, true_times, forces = apply_effects(effects, body, times)
         if effect == "rolling_shutter":  # exact: every row drawn from the pose at its own time
-            masks = _rolling_masks(mesh, camera, cands.state(body), times, body, cands.gravity(9.81),
-                                   float(value["line_delay"]))
+            masks = row_by_row(mesh, camera, cands.state(body), body, cands.gravity(9.81), times,
+                               float(value["line_delay"]))
         else:
             traj = simulate(cands.state(true_body), true_times, true_body, cands.gravity(9.81), forces)
             lens = [e for e in effects if e.kind == "camera"]
@@ -69,37 +70,16 @@ def _synthetic(effect, value, frames=28, focal=300.0, start=(-0.25, 0.05, 2.0), 
                                        size=(120, 160), sigma=None, distort=lens[0].distort if lens else None)[0]
     problem.masks = (masks > 0.5).to(F64)
     if effect == "rolling_shutter":
-        problem.used[0] = False  # its first rows are drawn at the flight's start (_rolling_masks)
+        problem.used[0] = False  # its first rows are drawn at the flight's start (row_by_row)
     problem.boxes = torch.as_tensor(np.nan_to_num(_boxes(problem.masks.numpy() > 0.5)), dtype=F64)
     assert bool((problem.masks.sum((1, 2)) > 40).all())
     return problem, cands
 
 
-def _rolling_masks(mesh, camera, state, times, body, gravity, line_delay):
-    """(T, H, W) hard masks of a rolling-shutter camera: row ``y`` of frame ``k`` from the pose
-    at ``times[k] + line_delay (y - cy)``, each row rendered from its own pose. The flight starts
-    at ``times[0]``: rows before it (frame 0's first rows, for a positive delay) are drawn at
-    ``times[0]``, so frame 0 is not exact."""
-    height = camera.height
-    rows = torch.arange(height, dtype=F64)
-    every = (times[:, None] + line_delay * (rows - camera.cy)).reshape(-1).clamp(min=float(times[0]))
-    unique, index = torch.unique(every, sorted=True, return_inverse=True)
-    traj = simulate(state, unique, body, gravity, step_size=1e-3)
-    rot = traj.rot[:, index].unflatten(1, (len(times), height))
-    position = traj.position[:, index].unflatten(1, (len(times), height))
-    window = full_window(camera, 1, height, dtype=F64)
-    out = []
-    for k in range(len(times)):
-        each = render_silhouettes(mesh, camera, rot[:, k], position[:, k], window, size=(height, camera.width),
-                                  sigma=None)[0]
-        out.append(each[torch.arange(height), torch.arange(height)])
-    return torch.stack(out)
-
-
 @pytest.mark.parametrize("effect, value, tolerance, wide", [
     ("time_scale", {"time_scale": 1.04}, 0.01, False),
     ("lens_distortion", {"k1": -0.25, "k2": 0.0}, 0.05, True),  # a wide lens, the object off-centre
-    ("rolling_shutter", {"line_delay": 1.2e-4}, 3e-5, False),  # masks drawn row by row (_rolling_masks)
+    ("rolling_shutter", {"line_delay": 1.2e-4}, 3e-5, False),  # masks drawn row by row (row_by_row)
 ])
 def test_refine_recovers_an_effect_hidden_in_torchfit_rendered_masks(effect, value, tolerance, wide):
     from torchfit.effects import EFFECTS

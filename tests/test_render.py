@@ -2,6 +2,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from rowwise import row_by_row
 from scipy.spatial import ConvexHull
 
 from torchfit import render
@@ -267,19 +268,13 @@ def test_rolling_shutter_first_order_matches_each_row_rendered_at_its_own_time()
     shape, camera, mesh, body, state = _thrown_box()
     gravity = torch.tensor([0.0, 9.81, 0.0], dtype=F64)
     frame_time, line_delay = 0.1, 1e-4
-    rows = torch.arange(120, dtype=F64)
-    times = torch.cat((torch.zeros(1, dtype=F64), frame_time + line_delay * (rows - camera.cy)))
-    traj = simulate(state, times, body, gravity, step_size=1e-3)
-    window = full_window(camera, 1, 120, dtype=F64)
-    each = render_silhouettes(mesh, camera, traj.rot[:, 1:], traj.position[:, 1:], window, size=(120, 160),
-                              sigma=0.3)[0]  # (rows, H, W): frame k drawn at row k's time
-    exact = each[torch.arange(120), torch.arange(120)]  # (H, W): row y from the pose at its time
+    exact = row_by_row(mesh, camera, state, body, gravity, [frame_time], line_delay, start=0.0, sigma=0.3)[0]
+    window = full_window(camera, 1, 1, dtype=F64)
     at = simulate(state, torch.tensor([0.0, frame_time], dtype=F64), body, gravity, step_size=1e-3)
     pose = (at.rot[:, 1:], at.position[:, 1:])
     shutter = Shutter(lambda v: line_delay * (v - camera.cy), at.velocity[:, 1:], at.angular_velocity[:, 1:])
-    first_order = render_silhouettes(mesh, camera, *pose, window[:, :1], size=(120, 160), sigma=0.3,
-                                     shutter=shutter)[0, 0]
-    still = render_silhouettes(mesh, camera, *pose, window[:, :1], size=(120, 160), sigma=0.3)[0, 0]
+    first_order = render_silhouettes(mesh, camera, *pose, window, size=(120, 160), sigma=0.3, shutter=shutter)[0, 0]
+    still = render_silhouettes(mesh, camera, *pose, window, size=(120, 160), sigma=0.3)[0, 0]
     moments = [mask_moments(image[None]) for image in (exact, first_order, still)]
     area = [float(m[0][0]) for m in moments]
     centroid = [m[1][0] for m in moments]
@@ -301,17 +296,13 @@ def test_rolling_shutter_decides_each_contour_edge_at_its_own_time():
 
     shape, camera, mesh, body, state = _thrown_box()
     gravity = torch.tensor([0.0, 9.81, 0.0], dtype=F64)
-    line_delay, rows = 1e-4, torch.arange(120, dtype=F64)
-    window = full_window(camera, 1, 120, dtype=F64)
-    for frame_time in torch.arange(0.02, 0.24, 0.01, dtype=F64).tolist():
-        times = torch.cat((torch.zeros(1, dtype=F64), frame_time + line_delay * (rows - camera.cy)))
-        traj = simulate(state, times, body, gravity, step_size=1e-3)
-        each = render_silhouettes(mesh, camera, traj.rot[:, 1:], traj.position[:, 1:], window, size=(120, 160),
-                                  sigma=0.3)[0]
-        exact = each[torch.arange(120), torch.arange(120)]
+    line_delay, window = 1e-4, full_window(camera, 1, 1, dtype=F64)
+    frame_times = torch.arange(0.02, 0.24, 0.01, dtype=F64)
+    exacts = row_by_row(mesh, camera, state, body, gravity, frame_times, line_delay, start=0.0, sigma=0.3)
+    for frame_time, exact in zip(frame_times.tolist(), exacts):
         at = simulate(state, torch.tensor([0.0, frame_time], dtype=F64), body, gravity, step_size=1e-3)
         shutter = Shutter(lambda v: line_delay * (v - camera.cy), at.velocity[:, 1:], at.angular_velocity[:, 1:])
-        first_order = render_silhouettes(mesh, camera, at.rot[:, 1:], at.position[:, 1:], window[:, :1],
+        first_order = render_silhouettes(mesh, camera, at.rot[:, 1:], at.position[:, 1:], window,
                                          size=(120, 160), sigma=0.3, shutter=shutter)[0, 0]
         area, centroid = (float(first_order.sum()), float(exact.sum())), [mask_moments(image[None])[1][0]
                                                                           for image in (first_order, exact)]
