@@ -308,25 +308,30 @@ def test_round_gains_names_each_candidate_by_the_round_it_was_scored_in():
                                           ("quadratic_drag", "magnus"): (11.8, 25.0)}
 
 
-def test_weights_side_by_side_counts_only_recordings_run_at_both(tmp_path):
-    """The chroma-weight comparison scores each weight over the recordings run at both, and
-    lists every recording whose verdict changed."""
+@pytest.mark.parametrize("suffix, kind", [("_chroma0.75", "segmented"), ("_with_rolling_shutter", "exact")])
+def test_side_by_side_counts_only_recordings_run_both_ways(tmp_path, suffix, kind):
+    """A variant's comparison (another chroma weight, one more candidate) scores each way over the
+    recordings run both ways, and lists every recording whose verdict changed."""
     sys.path.insert(0, str(CONCEALED.parent))
     conc = _load("concealed", CONCEALED.parent / "concealed.py")
     drag = {"quadratic_drag": {"drag_coefficient": 0.5}}
-    runs = {"concealed": {"drag_a": ["quadratic_drag"], "drag_b": [], "control_x": [], "drag_only_here": []},
-            "concealed_chroma0.75": {"drag_a": [], "drag_b": ["quadratic_drag"], "control_x": []}}
-    for folder, verdicts in runs.items():
-        rows = [conc.row(name, _content(verdict, {} if name.startswith("control") else drag))
-                for name, verdict in verdicts.items()]
-        (tmp_path / folder).mkdir()
-        (tmp_path / folder / "summary.json").write_text(json.dumps(rows))
-    text = conc.weights(0.75, tmp_path)
-    assert "| first | 0.5 | 1 of 2 | 1 of 1 | none | 1 of 1 | 1 of 1 | 3 |" in text
-    assert "| first | 0.75 | 1 of 2 | 1 of 1 | none | 1 of 1 | 1 of 1 | 3 |" in text
-    assert "| first | drag_a | quadratic_drag | quadratic_drag (yes) | none (NO) | 1.00 / 1.00 |" in text
-    assert "| first | drag_b | quadratic_drag | none (NO) | quadratic_drag (yes) | 1.00 / 1.00 |" in text
+    folder = "concealed" + ("_true_masks" if kind == "exact" else "")
+    runs = {folder: {"drag_a": ["quadratic_drag"], "drag_b": [], "control_x": [], "drag_only_here": []},
+            folder + suffix: {"drag_a": [], "drag_b": ["quadratic_drag"], "control_x": []}}
+    for name, verdicts in runs.items():
+        rows = [conc.row(rec, _content(verdict, {} if rec.startswith("control") else drag))
+                for rec, verdict in verdicts.items()]
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps(rows))
+    text = conc.side_by_side(suffix, "variant", tmp_path, masks=("segmented", "exact"))
+    for variant in ("default", "variant"):
+        assert f"| first | {kind} | {variant} | 1 of 2 | 1 of 1 | none | 1 of 1 | 1 of 1 | 3 |" in text
+        assert f"| **all** | {kind} | {variant} | 1 of 2 | 1 of 1 | none | 1 of 1 | 1 of 1 | 3 |" in text
+    assert f"| first | {kind} | drag_a | quadratic_drag | quadratic_drag (yes) | none (NO) | 1.00 / 1.00 |" in text
+    assert f"| first | {kind} | drag_b | quadratic_drag | none (NO) | quadratic_drag (yes) | 1.00 / 1.00 |" in text
     assert "drag_only_here" not in text and "control_x" not in text.split("differs")[1]
+    other = "exact" if kind == "segmented" else "segmented"
+    assert f"| first | {other} |" not in text  # no set of the other masks was run both ways
 
 
 def test_shutter_set_is_the_controls_throws_through_a_rolling_shutter(mods):

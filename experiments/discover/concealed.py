@@ -12,6 +12,7 @@
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
     python experiments/discover/concealed.py --scoreboard --chroma-weight W  # default weight against W, side by side
+    python experiments/discover/concealed.py --scoreboard --with NAME  # without and with one more candidate, side by side
     python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
@@ -248,36 +249,41 @@ def scoreboard() -> str:
     return "\n".join(lines)
 
 
-def weights(weight: float, root: Path = OUT.parent) -> str:
-    """The segmented sets at the default chroma weight and at ``weight``
-    (``--chroma-weight W`` runs), over the recordings run at both: the score of each set and of
-    all, and every recording whose verdict or held-out halving differs (from the stored
-    summary.json files under ``root``; no fitting)."""
-    default = SegmentationSettings().chroma_weight
-    lines = ["| set | chroma weight | right | controls quiet | wrong names | held-out halved "
-             "| coefficients within 25 % | recordings run at both |", "|---|---|---|---|---|---|---|---|"]
-    changed = ["| set | recording | hidden | verdict, " + f"{default:g} | verdict, {weight:g} "
-               "| held-out px after, " + f"{default:g} / {weight:g} |", "|---|---|---|---|---|---|"]
+def side_by_side(suffix: str, label: str, root: Path = OUT.parent, masks: tuple[str, ...] = ("segmented",),
+                 column: str = "run") -> str:
+    """Every stored set as run by default and as run with a variant (its folders end in ``suffix``:
+    ``_chroma0.75`` for ``--chroma-weight 0.75``, ``_with_rolling_shutter`` for ``--with
+    rolling_shutter``), over the recordings run both ways: the score of each set and of all, and
+    every recording whose verdict or held-out halving differs. ``label`` names the variant's rows,
+    ``column`` the column that holds ``default`` or ``label``; ``masks``: "segmented", "exact" (from
+    the stored summary.json files under ``root``; no fitting)."""
+    lines = [f"| set | masks | {column} | right | controls quiet | wrong names | held-out halved "
+             "| coefficients within 25 % | recordings run both ways |", "|---|---|---|---|---|---|---|---|---|"]
+    changed = [f"| set | masks | recording | hidden | verdict, default | verdict, {label} "
+               f"| held-out px after, default / {label} |", "|---|---|---|---|---|---|---|"]
     totals: dict = {}
-    run_at_both = 0
-    for label, name in SETS.items():
-        pair = [root / name / "summary.json", root / f"{name}_chroma{weight:g}" / "summary.json"]
-        if not all(f.exists() for f in pair):
-            continue
-        rows = [{r["recording"]: r for r in json.loads(f.read_text())} for f in pair]
-        common = sorted(set(rows[0]) & set(rows[1]))
-        for w, by_name in zip((default, weight), rows):
-            counts = score([by_name[n] for n in common])
-            _add_counts(totals.setdefault(w, {}), counts)
-            lines.append(_board_row(label, f"{w:g}", counts, str(len(common))))
-        run_at_both += len(common)
-        for n in common:
-            a, b = rows[0][n], rows[1][n]
-            if _verdict(a) != _verdict(b) or (a["right"] and _halved(a)) != (b["right"] and _halved(b)):
-                changed.append(f"| {label} | {n} | {', '.join(a['truth']) or 'nothing'} | {_verdict(a)} ({_right(a)}) "
-                               f"| {_verdict(b)} ({_right(b)}) | {a['heldout_px_after']:.2f} / {b['heldout_px_after']:.2f} |")
-    for w, counts in totals.items():
-        lines.append(_board_row("**all**", f"{w:g}", counts, str(run_at_both)))
+    run_both = dict.fromkeys(masks, 0)
+    for name_label, name in SETS.items():
+        for kind in masks:
+            folder = name + ("_true_masks" if kind == "exact" else "")
+            pair = [root / folder / "summary.json", root / f"{folder}{suffix}" / "summary.json"]
+            if not all(f.exists() for f in pair):
+                continue
+            rows = [{r["recording"]: r for r in json.loads(f.read_text())} for f in pair]
+            common = sorted(set(rows[0]) & set(rows[1]))
+            for variant, by_name in zip(("default", label), rows):
+                counts = score([by_name[n] for n in common])
+                _add_counts(totals.setdefault((kind, variant), {}), counts)
+                lines.append(_board_row(name_label, f"{kind} | {variant}", counts, str(len(common))))
+            run_both[kind] += len(common)
+            for n in common:
+                a, b = rows[0][n], rows[1][n]
+                if _verdict(a) != _verdict(b) or (a["right"] and _halved(a)) != (b["right"] and _halved(b)):
+                    changed.append(f"| {name_label} | {kind} | {n} | {', '.join(a['truth']) or 'nothing'} "
+                                   f"| {_verdict(a)} ({_right(a)}) | {_verdict(b)} ({_right(b)}) "
+                                   f"| {a['heldout_px_after']:.2f} / {b['heldout_px_after']:.2f} |")
+    for (kind, variant), counts in totals.items():
+        lines.append(_board_row("**all**", f"{kind} | {variant}", counts, str(run_both[kind])))
     return "\n".join(lines) + "\n\nVerdict or held-out halving differs:\n\n" + "\n".join(changed)
 
 
@@ -482,7 +488,8 @@ if __name__ == "__main__":
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md); "
                          "with --chroma-weight W the segmented sets at the default weight and at W side by side "
-                         "(results/chroma<W>_side_by_side.md)")
+                         "(results/chroma<W>_side_by_side.md), with --with NAME the sets with and without that "
+                         "candidate (results/with_<NAME>_side_by_side.md)")
     ap.add_argument("--rules", action="store_true",
                     help="what each test alone kept out over every stored set (results/rules.md)")
     args = ap.parse_args()
@@ -490,9 +497,15 @@ if __name__ == "__main__":
         text = rules_text(rule_tally())
         (OUT.parent / "rules.md").write_text(text + "\n")
         sys.exit(print(text))
-    if args.scoreboard and args.chroma_weight is not None:
-        text = weights(args.chroma_weight)
-        (OUT.parent / f"chroma{args.chroma_weight:g}_side_by_side.md").write_text(text + "\n")
+    if args.scoreboard and (args.chroma_weight is not None or args.extra):
+        if args.chroma_weight is not None:
+            suffix, label = f"_chroma{args.chroma_weight:g}", f"chroma {args.chroma_weight:g}"
+            text = side_by_side(suffix, label, column="segmentation")
+        else:
+            suffix = "".join(f"_with_{name}" for name in args.extra)
+            label = "with " + ", ".join(args.extra)
+            text = side_by_side(suffix, label, masks=("segmented", "exact"), column="candidates")
+        (OUT.parent / f"{suffix[1:]}_side_by_side.md").write_text(text + "\n")
         sys.exit(print(text))
     if args.scoreboard:
         board = scoreboard()
