@@ -335,16 +335,17 @@ def test_side_by_side_counts_only_recordings_run_both_ways(tmp_path, suffix, kin
 
 
 def test_shutter_set_is_the_controls_throws_through_a_rolling_shutter(mods):
-    """make_concealed.py --shutter: control_tshape's and control_box's specs with a 30 µs/row
-    shutter (so the same flights), whose twin has none; the bands tile the rows, each offset is
+    """make_concealed.py --shutter: the four controls' specs with a shutter (30 µs/row for the
+    T-handle and the box, 20 for the cylinder and the ball; so the same flights), whose twin has none; the bands tile the rows, each offset is
     the delay at its centre row, and every band time of every frame and blur sub-frame is sampled."""
     mr, mc = mods
     specs = {s.name: s for s, _ in mc.shutter_specs()}
     controls = {s.name: s for s, _ in mc.concealed_specs(0)}
-    assert sorted(specs) == ["control_box", "control_tshape", "shutter_box", "shutter_tshape"]
-    for shape in ("tshape", "box"):
+    shapes = {"tshape": 3e-5, "box": 3e-5, "cylinder": 2e-5, "ball": 2e-5}
+    assert sorted(specs) == sorted(f"{kind}_{shape}" for shape in shapes for kind in ("control", "shutter"))
+    for shape, delay in shapes.items():
         name = f"shutter_{shape}"
-        assert specs[name] == controls[f"control_{shape}"].replace(name=name, line_delay=3e-5)
+        assert specs[name] == controls[f"control_{shape}"].replace(name=name, line_delay=delay)
         assert specs[f"control_{shape}"] == controls[f"control_{shape}"]
         assert mc.twin_spec(specs[name]).line_delay is None
     bands = mr.shutter_bands(specs["shutter_tshape"])

@@ -16,7 +16,7 @@ Make them all (from the repository root, ~2 minutes on one core)::
 Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), ``--only a,b``,
 ``--list``, ``--markdown`` (print the table as Markdown, as in CONCEALED.md), ``--fresh K``
 (a fresh set from the same recipes: other seeds and background scene K, in recordings_fresh<K>/),
-``--shutter`` (two controls' throws through a rolling shutter, and the controls, in
+``--shutter`` (the four controls' throws through a rolling shutter, and the controls, in
 recordings_shutter/: ``shutter_specs``).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
@@ -150,16 +150,20 @@ def concealed_specs(fresh: int = 0) -> list[tuple[mr.RecordingSpec, str]]:
     ]
 
 
+SHUTTER_DELAYS = {"tshape": 3e-5, "box": 3e-5, "cylinder": 2e-5, "ball": 2e-5}  # seconds per row
+
+
 def shutter_specs() -> list[tuple[mr.RecordingSpec, str]]:
-    """The rolling-shutter set: control_tshape's and control_box's throws of the first set (the
-    same specs and seeds, so the same flights) through a rolling shutter of 30 µs per row (14 ms
-    to read the 480 rows, a phone's readout at 30-60 fps), and the two controls themselves."""
-    controls = {s.name: (s, what) for s, what in concealed_specs(0) if s.name in ("control_tshape", "control_box")}
+    """The rolling-shutter set: the four controls' throws of the first set (the same specs and
+    seeds, so the same flights) through a rolling shutter (``SHUTTER_DELAYS``: 30 µs per row for
+    the T-handle and the box, 14 ms to read the 480 rows, a phone's readout at 30-60 fps; 20 µs
+    for the cylinder and the ball), each followed by its control."""
+    controls = {s.name: (s, what) for s, what in concealed_specs(0)}
     out = []
-    for shape in ("tshape", "box"):
+    for shape, delay in SHUTTER_DELAYS.items():
         spec, what = controls[f"control_{shape}"]
-        out.append((spec.replace(name=f"shutter_{shape}", line_delay=3e-5),
-                    f"rolling shutter 30 us/row, control_{shape}'s throw"))
+        out.append((spec.replace(name=f"shutter_{shape}", line_delay=delay),
+                    f"rolling shutter {delay * 1e6:.0f} us/row, control_{shape}'s throw"))
         out.append((spec, what))
     return out
 
