@@ -334,6 +334,30 @@ def test_side_by_side_counts_only_recordings_run_both_ways(tmp_path, suffix, kin
     assert f"| first | {other} |" not in text  # no set of the other masks was run both ways
 
 
+def test_candidate_rounds_lists_the_rounds_an_extra_candidate_beat_the_threshold(tmp_path):
+    """--scoreboard --with NAME lists each round where NAME lowered the BIC by more than the
+    threshold, with the tests it failed and the round's strongest passing candidate."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+
+    def sc(base, bic, fails=()):
+        return {"base": base, "delta_bic": bic, "fails": list(fails), "passes": not fails}
+
+    content = {"truth_effects": {"com_offset": {}}, "verdict": ["com_offset"],
+               "effects": {"com_offset": [sc([], 300.0)],
+                           "rolling_shutter": [sc([], 80.0), sc(["com_offset"], 12.0, ["evidence_spread"])],
+                           "magnus": [sc([], 15.0, ["heldout"]), sc(["com_offset"], 2.0, ["delta_bic"])]}}
+    quiet = {"truth_effects": {}, "verdict": [], "effects": {"rolling_shutter": [sc([], 4.0, ["delta_bic"])]}}
+    for folder, name, body in (("concealed_with_rolling_shutter", "com_box", content),
+                               ("concealed_fresh2_true_masks_with_rolling_shutter", "control_box", quiet)):
+        (tmp_path / folder / name).mkdir(parents=True)
+        (tmp_path / folder / name / "discover.json").write_text(json.dumps(body))
+    lines = conc.candidate_rounds("rolling_shutter", tmp_path).splitlines()
+    assert lines[2:] == [
+        "| first | segmented | com_box | com_offset | baseline | 80.0 | none | com_offset 300.0 | com_offset |",
+        "| first | segmented | com_box | com_offset | com_offset | 12.0 | evidence_spread | none | com_offset |"]
+
+
 def test_shutter_set_is_the_controls_throws_through_a_rolling_shutter(mods):
     """make_concealed.py --shutter: the four controls' specs with a shutter (30 µs/row for the
     T-handle and the box, 20 for the cylinder and the ball; so the same flights), whose twin has none; the bands tile the rows, each offset is

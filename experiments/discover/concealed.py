@@ -287,6 +287,35 @@ def side_by_side(suffix: str, label: str, root: Path = OUT.parent, masks: tuple[
     return "\n".join(lines) + "\n\nVerdict or held-out halving differs:\n\n" + "\n".join(changed)
 
 
+def candidate_rounds(name: str, root: Path = OUT.parent) -> str:
+    """Every round of every ``--with name`` run (all sets, segmented and exact) in which ``name``
+    lowered the BIC by more than the threshold: its ΔBIC, the tests it failed, and the round's
+    winner (the strongest candidate that passed) with its ΔBIC. From the stored discover.json
+    files (no fitting)."""
+    threshold = VIDEO_SELECTION.min_delta_bic
+    lines = [f"| set | masks | recording | hidden | round (after) | {name} ΔBIC | failed | strongest passing "
+             "| verdict |", "|---|---|---|---|---|---|---|---|---|"]
+    for label, set_name in SETS.items():
+        for kind in ("segmented", "exact"):
+            folder = root / (set_name + ("_true_masks" if kind == "exact" else "") + f"_with_{name}")
+            for file in sorted(folder.glob("*/discover.json")):
+                content = json.loads(file.read_text())
+                rounds: dict = {}
+                for effect, scores in content["effects"].items():
+                    for sc in scores:
+                        rounds.setdefault(tuple(sc["base"]), {})[effect] = sc
+                for base, scores in rounds.items():
+                    mine = scores.get(name)
+                    if mine is None or mine["delta_bic"] <= threshold:
+                        continue
+                    passing = sorted(((sc["delta_bic"], e) for e, sc in scores.items() if sc["passes"]), reverse=True)
+                    best = f"{passing[0][1]} {passing[0][0]:.1f}" if passing else "none"
+                    lines.append(f"| {label} | {kind} | {file.parent.name} | {', '.join(content.get('truth_effects') or {}) or 'nothing'} "
+                                 f"| {'+'.join(base) or 'baseline'} | {mine['delta_bic']:.1f} | {', '.join(mine['fails']) or 'none'} "
+                                 f"| {best} | {', '.join(content['verdict']) or 'none'} |")
+    return "\n".join(lines)
+
+
 RULES = ("unphysical", "evidence_spread", "heldout", "wald")  # the tests besides the ΔBIC threshold
 
 
@@ -505,6 +534,8 @@ if __name__ == "__main__":
             suffix = "".join(f"_with_{name}" for name in args.extra)
             label = "with " + ", ".join(args.extra)
             text = side_by_side(suffix, label, masks=("segmented", "exact"), column="candidates")
+            text += "".join(f"\n\nRounds where {name} lowered the BIC by more than the threshold:\n\n"
+                            + candidate_rounds(name) for name in args.extra)
         (OUT.parent / f"{suffix[1:]}_side_by_side.md").write_text(text + "\n")
         sys.exit(print(text))
     if args.scoreboard:
