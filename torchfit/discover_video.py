@@ -856,22 +856,17 @@ def _edge_prior(edge: tuple[float, float]) -> tuple[float, float]:
 
 def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> np.ndarray:
     """(T, H, W) bool silhouettes of a model over the span, full frame: the flight of
-    :func:`candidate_poses`, the one the fit sees, drawn eight frames at a time."""
+    :func:`candidate_poses`, the one the fit sees (the renderer bounds its own memory)."""
     frames = len(problem.times)
     with torch.no_grad():
         rot, position, motion = candidate_poses(problem, model.cands, frames, effects)
         delay = shutter_model(effects, problem.camera.cy)
-        height, width = problem.masks.shape[-2:]
-        out = []
-        for chunk in range(0, frames, 8):
-            sl = slice(chunk, min(frames, chunk + 8))
-            window = full_window(problem.camera, 1, sl.stop - sl.start, dtype=problem.masks.dtype,
-                                 device=problem.masks.device)
-            shutter = None if delay is None else Shutter(delay, motion[:, sl, :3], motion[:, sl, 3:])
-            out.append(render_silhouettes(problem.mesh, problem.camera, rot[:, sl], position[:, sl], window,
-                                          size=(height, width), sigma=None,
-                                          distort=lens_model(effects), shutter=shutter)[0])
-        return (torch.cat(out) > 0.5).cpu().numpy()
+        shutter = None if delay is None else Shutter(delay, motion[..., :3], motion[..., 3:])
+        window = full_window(problem.camera, 1, frames, dtype=problem.masks.dtype, device=problem.masks.device)
+        cover = render_silhouettes(problem.mesh, problem.camera, rot, position, window,
+                                   size=tuple(problem.masks.shape[-2:]), sigma=None,
+                                   distort=lens_model(effects), shutter=shutter)[0]
+        return (cover > 0.5).cpu().numpy()
 
 
 def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: dict, train: np.ndarray,

@@ -200,6 +200,7 @@ def score_line(counts: dict) -> str:
 
 
 SETS = {"first": "concealed", "fresh 1": "concealed_fresh1", "fresh 2": "concealed_fresh2"}
+MASKS = {"segmented": "", "exact": "_true_masks"}  # each kind of masks' results folder suffix
 
 
 def below_exact_limit(exact: dict) -> bool:
@@ -229,10 +230,10 @@ def scoreboard() -> str:
              "| right, effect above its exact-mask limit |", "|---|---|---|---|---|---|---|---|"]
     totals: dict = {}
     for label, name in SETS.items():
-        exact_file = root / f"{name}_true_masks" / "summary.json"
+        exact_file = root / f"{name}{MASKS['exact']}" / "summary.json"
         exact = {r["recording"]: r for r in json.loads(exact_file.read_text())} if exact_file.exists() else {}
         below = sorted(n for n, r in exact.items() if below_exact_limit(r))
-        for masks, folder in (("segmented", name), ("exact", f"{name}_true_masks")):
+        for masks, folder in ((kind, name + suffix) for kind, suffix in MASKS.items()):
             file = root / folder / "summary.json"
             if not file.exists():
                 continue
@@ -247,6 +248,15 @@ def scoreboard() -> str:
     for masks, counts in totals.items():
         lines.append(_board_row("**all**", masks, counts))
     return "\n".join(lines)
+
+
+def _rounds(content: dict) -> dict:
+    """A discover.json's candidate scores by round: ``{base effects (tuple): {effect: score}}``."""
+    rounds: dict = {}
+    for effect, scores in content["effects"].items():
+        for sc in scores:
+            rounds.setdefault(tuple(sc["base"]), {})[effect] = sc
+    return rounds
 
 
 def side_by_side(suffix: str, label: str, root: Path = OUT.parent, masks: tuple[str, ...] = ("segmented",),
@@ -265,7 +275,7 @@ def side_by_side(suffix: str, label: str, root: Path = OUT.parent, masks: tuple[
     run_both = dict.fromkeys(masks, 0)
     for name_label, name in SETS.items():
         for kind in masks:
-            folder = name + ("_true_masks" if kind == "exact" else "")
+            folder = name + MASKS[kind]
             pair = [root / folder / "summary.json", root / f"{folder}{suffix}" / "summary.json"]
             if not all(f.exists() for f in pair):
                 continue
@@ -296,15 +306,10 @@ def candidate_rounds(name: str, root: Path = OUT.parent) -> str:
     lines = [f"| set | masks | recording | hidden | round (after) | {name} ΔBIC | failed | strongest passing "
              "| verdict |", "|---|---|---|---|---|---|---|---|---|"]
     for label, set_name in SETS.items():
-        for kind in ("segmented", "exact"):
-            folder = root / (set_name + ("_true_masks" if kind == "exact" else "") + f"_with_{name}")
-            for file in sorted(folder.glob("*/discover.json")):
+        for kind, suffix in MASKS.items():
+            for file in sorted((root / f"{set_name}{suffix}_with_{name}").glob("*/discover.json")):
                 content = json.loads(file.read_text())
-                rounds: dict = {}
-                for effect, scores in content["effects"].items():
-                    for sc in scores:
-                        rounds.setdefault(tuple(sc["base"]), {})[effect] = sc
-                for base, scores in rounds.items():
+                for base, scores in _rounds(content).items():
                     mine = scores.get(name)
                     if mine is None or mine["delta_bic"] <= threshold:
                         continue
@@ -331,19 +336,15 @@ def rule_tally(root: Path = OUT.parent) -> dict:
     margin = VIDEO_SELECTION.lookalike_margin
     out: dict = {}
     for label, name in SETS.items():
-        for masks, folder in (("segmented", name), ("exact", f"{name}_true_masks")):
+        for masks, folder in ((kind, name + suffix) for kind, suffix in MASKS.items()):
             tally = out.setdefault(masks, {rule: {"right": [], "wrong": []} for rule in RULES})
             for file in sorted((root / folder).glob("*/discover.json")):
                 content = json.loads(file.read_text())
                 truth = set(content.get("truth_effects") or {})
-                rounds: dict = {}
-                for effect, scores in content["effects"].items():
-                    for sc in scores:
-                        rounds.setdefault(tuple(sc["base"]), []).append((effect, sc))
-                for base, scores in rounds.items():
-                    passing = [sc["delta_bic"] for _, sc in scores if sc["passes"]]
+                for base, scores in _rounds(content).items():
+                    passing = [sc["delta_bic"] for sc in scores.values() if sc["passes"]]
                     best = max(passing, default=None)
-                    for effect, sc in scores:
+                    for effect, sc in scores.items():
                         if len(sc["fails"]) != 1 or sc["fails"][0] not in RULES:
                             continue
                         if best is not None and sc["delta_bic"] < best - margin:
@@ -470,11 +471,11 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
-        out = OUT.with_name("rolling_shutter" + ("_true_masks" if true_masks else ""))
+        out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"])
     elif shipped:
         out = OUT.with_name("shipped")
     else:
-        out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + ("_true_masks" if true_masks else "")
+        out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + "".join(f"_with_{name}" for name in extra))
     if table_only:
