@@ -161,10 +161,12 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
         cfg = compose(config_name="config", overrides=[
             "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
             f"camera.file={small / 'camera.json'}", f"data.truth={small / 'truth.json'}", "search=quick",
-            "params.quick=true", "params.holdout=0.2", "outputs.overlay_video=true", "quiet=true"])
+            "params.quick=true", "params.holdout=0.2", "params.edge_px=0.05", "outputs.overlay_video=true",
+            "quiet=true"])
     summary = run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
+    assert content["noise_edge_px"] == 0.05 and content["noise"]["centroid_x"] >= 0.05
     assert set(content["located"]["channels"]) == {"centroid_x", "centroid_y", "scale", "shape", "orientation"}
     tried = content["effects"]["quadratic_drag"][0]
     assert {"params", "delta_bic", "p_value", "heldout_rms_before", "heldout_rms_after"} <= set(tried)
@@ -363,6 +365,41 @@ def test_whitening_makes_frame_correlated_noise_independent_across_gaps():
     trend = video._whitened(torch.full((1, 40), sigma, dtype=torch.float64), np.ones(40, bool), "scale")
     expected = 1 + 39 * (1 - rho) / (1 + rho)
     assert abs(float(trend.square().sum()) - expected) < 1e-9
+
+
+def test_edge_term_of_the_noise_floor_is_the_one_given(tmp_path):
+    """``edge_px`` (masks without segmentation error want less than the segmentation's EDGE_PX) is
+    the edge term of every channel's floor: the centroid's floor is hypot(jitter, edge_px), so it
+    falls with the term; a negative or non-finite term is refused, by the class and by the CLI."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    import torchfit.discover_video as dv
+    from torchfit.run import ConfigError, run
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.0})
+    base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    floors = {}
+    for edge in (dv.EDGE_PX, 0.03, 0.0):
+        video = dv.VideoProblem(problem, candidates=(), edge_px=edge)
+        video._set_noise(base)
+        assert video.systematic["centroid_x"] == edge
+        floors[edge] = video.noise["centroid_x"]
+    jitter = floors[0.0]
+    assert floors[0.03] == pytest.approx(np.hypot(jitter, 0.03), rel=1e-12)
+    assert floors[dv.EDGE_PX] == pytest.approx(np.hypot(jitter, dv.EDGE_PX), rel=1e-12)
+    assert floors[dv.EDGE_PX] > floors[0.03] > jitter > 0
+    for bad in (-0.01, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="edge_px must be a non-negative"):
+            dv.VideoProblem(problem, candidates=(), edge_px=bad)
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+            f"camera.file={small / 'camera.json'}", "params.edge_px=-0.1", "quiet=true"])
+    with pytest.raises(ConfigError, match="params.edge_px must be a non-negative edge accuracy in pixels, got -0.1"):
+        run(cfg, tmp_path)
 
 
 def test_added_effect_starts_from_the_screened_start_nearest_the_data():

@@ -351,6 +351,8 @@ class VideoProblem:
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
+        if not (math.isfinite(edge_px) and edge_px >= 0):
+            raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
         self.search_problem = problem
         # refits run in float64: finite differences of a converged fit need more than float32 resolves
         problem = _as_float64(problem)
@@ -903,8 +905,9 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
 
 def discover_video(problem: Problem, observation, span: np.ndarray, *, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
-                   iterations: int = 15, out_dir: Path | None = None, overlay: bool = True,
-                   truth: dict | None = None, progress: Callable[[str], None] | None = None) -> dict:
+                   iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
+                   overlay: bool = True, truth: dict | None = None,
+                   progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -914,6 +917,9 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         settings: the selection rules (``settings.holdout``: fraction of frames held out).
         search: the baseline search's settings.
         iterations: Levenberg-Marquardt iterations of each refit.
+        edge_px: the masks' systematic edge accuracy in pixels, the noise floor's edge term
+            (``EDGE_PX`` for torchfit's segmentation of video; lower for masks without
+            segmentation error, see experiments/discover/calibrate_noise.py).
         out_dir: where ``discover.json``, ``residuals.png`` and ``overlay_discover.mp4`` go.
         truth: the recording's ``truth.json`` content (its ``effects`` are reported beside the verdict).
 
@@ -923,7 +929,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     clock = time.perf_counter()
     say = progress or (lambda message: None)
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
-                         iterations=iterations, progress=say)
+                         iterations=iterations, edge_px=edge_px, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -946,6 +952,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "located_after": locate(as_residuals(after)),
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
         "noise": video.noise,
+        "noise_edge_px": edge_px,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],

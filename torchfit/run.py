@@ -331,7 +331,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         if cfg.data.get("points"):
             return run_points(cfg, out_dir, discover=True)
         raise ConfigError("discover: give data.video=<recording> or data.points=<t,x,y,z csv>")
-    from .discover_video import DEFAULT_CANDIDATES, VIDEO_EFFECTS, discover_video
+    from .discover_video import DEFAULT_CANDIDATES, EDGE_PX, VIDEO_EFFECTS, discover_video
 
     ctx = context(cfg)
     settings = params(cfg)
@@ -339,6 +339,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     settings.pop("candidates", None)  # the points' list
     candidates = settings.pop("video_candidates", None) or list(DEFAULT_CANDIDATES)
     iterations = int(settings.pop("iterations", 15))
+    edge_px = float(settings.pop("edge_px", EDGE_PX))
+    if not (math.isfinite(edge_px) and edge_px >= 0):
+        raise ConfigError(f"params.edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -362,8 +365,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                                   device=ctx["device"])
     truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None
     summary = discover_video(problem, observation, span, candidates=candidates, settings=rules,
-                             search=_search_settings(cfg.search), iterations=iterations, out_dir=out_dir,
-                             overlay=bool(cfg.outputs.overlay_video), truth=truth, progress=ctx["progress"])
+                             search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
+                             out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
+                             progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")

@@ -9,10 +9,12 @@
     python experiments/discover/concealed.py --shutter [--true-masks] # the rolling-shutter set, + rolling_shutter
     python experiments/discover/concealed.py --with rolling_shutter [...] # one more candidate (results/..._with_<name>/)
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
+    python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
     python experiments/discover/concealed.py --scoreboard --chroma-weight W  # default weight against W, side by side
     python experiments/discover/concealed.py --scoreboard --with NAME  # without and with one more candidate, side by side
+    python experiments/discover/concealed.py --scoreboard --edge-px E  # exact masks at EDGE_PX and at E, side by side
     python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
 
 Each recording gets `python -m torchfit experiment=discover`'s outputs in
@@ -47,6 +49,7 @@ from torchfit.discover import without_weakest_block
 from torchfit.discover_video import (
     DEFAULT_CANDIDATES,
     EDGE_FORM,
+    EDGE_PX,
     VIDEO_EFFECTS,
     VIDEO_SELECTION,
     discover_video,
@@ -63,14 +66,14 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
-            candidates: tuple[str, ...] = CANDIDATES) -> dict:
+            candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX) -> dict:
     truth = json.loads((folder / "truth.json").read_text())
     shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
     camera = Camera.from_file(folder / "camera.json")
     settings = None if chroma_weight is None else SegmentationSettings(chroma_weight=chroma_weight)
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
-                          truth=truth, out_dir=out, overlay=False, progress=print)
+                          edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print)
 
 
 def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
@@ -467,7 +470,7 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
-         shutter: bool = False, extra: tuple[str, ...] = ()) -> None:
+         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
@@ -477,7 +480,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
-                            + "".join(f"_with_{name}" for name in extra))
+                            + "".join(f"_with_{name}" for name in extra)
+                            + (f"_edge{edge_px:g}" if edge_px != EDGE_PX else ""))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -493,7 +497,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra))
+        content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -514,12 +518,15 @@ if __name__ == "__main__":
                     help="one more candidate besides the defaults (repeatable; results/concealed..._with_<name>/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
                     help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
+    ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
+                    help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md); "
                          "with --chroma-weight W the segmented sets at the default weight and at W side by side "
                          "(results/chroma<W>_side_by_side.md), with --with NAME the sets with and without that "
-                         "candidate (results/with_<NAME>_side_by_side.md)")
+                         "candidate (results/with_<NAME>_side_by_side.md), with --edge-px E the exact masks' sets "
+                         "at the default edge term and at E (results/edge<E>_side_by_side.md)")
     ap.add_argument("--rules", action="store_true",
                     help="what each test alone kept out over every stored set (results/rules.md)")
     args = ap.parse_args()
@@ -527,10 +534,15 @@ if __name__ == "__main__":
         text = rules_text(rule_tally())
         (OUT.parent / "rules.md").write_text(text + "\n")
         sys.exit(print(text))
-    if args.scoreboard and (args.chroma_weight is not None or args.extra):
+    if not (args.edge_px >= 0):
+        ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
+    if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX):
         if args.chroma_weight is not None:
             suffix, label = f"_chroma{args.chroma_weight:g}", f"chroma {args.chroma_weight:g}"
             text = side_by_side(suffix, label, column="segmentation")
+        elif args.edge_px != EDGE_PX:
+            suffix, label = f"_edge{args.edge_px:g}", f"edge {args.edge_px:g} px"
+            text = side_by_side(suffix, label, masks=("exact",), column="noise floor")
         else:
             suffix = "".join(f"_with_{name}" for name in args.extra)
             label = "with " + ", ".join(args.extra)
@@ -552,4 +564,4 @@ if __name__ == "__main__":
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter, tuple(args.extra))
+         args.shutter, tuple(args.extra), args.edge_px)
