@@ -262,6 +262,30 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     assert conc.below_exact_limit(clock)
 
 
+def test_scoreboard_takes_the_exact_limit_from_the_exact_masks_own_floor_where_run(tmp_path):
+    """A weak drag missed on the exact masks at the segmentation's floor (its limit above the
+    truth) is below the exact-mask limit, unless its run at the exact masks' own floor
+    (EXACT_EDGE_PX) names it; the scoreboard has a row for each kind of masks."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    weak = {"quadratic_drag": {"drag_coefficient": 0.2}}  # limit 0.3 in _content
+    runs = {"concealed": {"drag_a": [], "drag_b": [], "control_x": []},
+            "concealed_true_masks": {"drag_a": [], "drag_b": [], "control_x": []},
+            f"concealed_true_masks_edge{conc.EXACT_EDGE_PX:g}": {"drag_a": ["quadratic_drag"], "control_x": []}}
+    for name, verdicts in runs.items():
+        rows = [conc.row(rec, _content(verdict, {} if rec.startswith("control") else weak))
+                for rec, verdict in verdicts.items()]
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps(rows))
+    board = conc.scoreboard(tmp_path)
+    assert "| first | below the exact-mask limit | drag_b |" in board  # drag_a is named at the own floor
+    assert "| first | segmented | 0 of 2 | 1 of 1 | none | 0 of 0 | 0 of 0 | 0 of 1 |" in board
+    assert "| first | exact | 0 of 2 | 1 of 1 | none | 0 of 0 | 0 of 0 | 0 of 1 |" in board
+    floor = f"exact, floor {conc.EXACT_EDGE_PX:g} px"
+    assert f"| first | {floor} | 1 of 1 | 1 of 1 | none | 1 of 1 | 0 of 1 | 1 of 1 |" in board  # C_d 0.5 on 0.2
+    assert f"| **all** | {floor} | 1 of 1 |" in board
+
+
 def test_rule_tally_counts_only_what_one_test_alone_kept_out_of_its_round(tmp_path):
     """A candidate counts against a test when it fails that test only and would have changed its
     round: nothing passed there, or its ΔBIC is within the look-alike margin of the winner's or
@@ -308,7 +332,8 @@ def test_round_gains_names_each_candidate_by_the_round_it_was_scored_in():
                                           ("quadratic_drag", "magnus"): (11.8, 25.0)}
 
 
-@pytest.mark.parametrize("suffix, kind", [("_chroma0.75", "segmented"), ("_with_rolling_shutter", "exact")])
+@pytest.mark.parametrize("suffix, kind", [("_chroma0.75", "segmented"), ("_with_rolling_shutter", "exact"),
+                                          ("_edge0.03", "exact")])
 def test_side_by_side_counts_only_recordings_run_both_ways(tmp_path, suffix, kind):
     """A variant's comparison (another chroma weight, one more candidate) scores each way over the
     recordings run both ways, and lists every recording whose verdict changed."""
