@@ -36,8 +36,6 @@ from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
 from torchfit.losses import mask_moments
 from torchfit.paper._recording import load_recording
 from torchfit.residuals import CHANNELS, channel_values, noise_floor, systematic_floor
-from torchfit.run import build_problem
-from torchfit.video import load_observation
 
 EDGES = (0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
 EXACT_EDGES = (0.1, 0.07, 0.05, 0.04, 0.03, 0.02, 0.01, 0.0)
@@ -59,12 +57,7 @@ def correlation(rec, observation, lags=(1, 2)) -> dict:
 
 def calibrate(name: str, true_masks: bool = False) -> dict:
     rec = load_recording(name)
-    if true_masks:
-        _, problem, _ = load_problem(rec.folder, rec.shape, rec.camera, true_masks=True)
-    else:
-        observation = load_observation(str(rec.folder / "video.mp4"), camera=rec.camera)
-        problem, _ = build_problem(observation, rec.shape, rec.camera, g=9.81, dtype=torch.float32,
-                                   device=torch.device("cpu"))
+    observation, problem, _ = load_problem(rec.folder, rec.shape, rec.camera, true_masks)
     video = VideoProblem(problem, candidates=())
     base = video.fit((), None)
     channels = base.payload["channels"]

@@ -207,8 +207,17 @@ SETS = {"first": "concealed", "fresh 1": "concealed_fresh1", "fresh 2": "conceal
 # baseline chi-squared per observation of the shipped recordings' exact masks is 0.92 at 0.03 px);
 # the exact-mask runs at EDGE_PX (0.1, the segmentation's) are the stored default ones
 EXACT_EDGE_PX = 0.03
+
+
+def edge_suffix(edge_px: float) -> str:
+    """A results folder's suffix for runs whose noise floor has the edge term ``edge_px``
+    (none for the default ``EDGE_PX``)."""
+    return "" if edge_px == EDGE_PX else f"_edge{edge_px:g}"
+
+
+EXACT_OWN = f"exact, floor {EXACT_EDGE_PX:g} px"  # the exact masks at their own floor
 # each kind of masks' results folder suffix
-MASKS = {"segmented": "", "exact": "_true_masks", f"exact, floor {EXACT_EDGE_PX:g} px": f"_true_masks_edge{EXACT_EDGE_PX:g}"}
+MASKS = {"segmented": "", "exact": "_true_masks", EXACT_OWN: "_true_masks" + edge_suffix(EXACT_EDGE_PX)}
 
 
 def below_exact_limit(exact: dict) -> bool:
@@ -241,7 +250,7 @@ def scoreboard(root: Path = OUT.parent) -> str:
     totals: dict = {}
     for label, name in SETS.items():
         exact: dict = {}
-        for kind in ("exact", f"exact, floor {EXACT_EDGE_PX:g} px"):  # the sharper floor's row wins
+        for kind in ("exact", EXACT_OWN):  # the sharper floor's row wins
             exact_file = root / f"{name}{MASKS[kind]}" / "summary.json"
             if exact_file.exists():
                 exact |= {r["recording"]: r for r in json.loads(exact_file.read_text())}
@@ -491,7 +500,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + "".join(f"_with_{name}" for name in extra)
-                            + (f"_edge{edge_px:g}" if edge_px != EDGE_PX else ""))
+                            + edge_suffix(edge_px))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -551,7 +560,7 @@ if __name__ == "__main__":
             suffix, label = f"_chroma{args.chroma_weight:g}", f"chroma {args.chroma_weight:g}"
             text = side_by_side(suffix, label, column="segmentation")
         elif args.edge_px != EDGE_PX:
-            suffix, label = f"_edge{args.edge_px:g}", f"edge {args.edge_px:g} px"
+            suffix, label = edge_suffix(args.edge_px), f"edge {args.edge_px:g} px"
             text = side_by_side(suffix, label, masks=("exact",), column="noise floor")
         else:
             suffix = "".join(f"_with_{name}" for name in args.extra)
