@@ -86,10 +86,33 @@ def test_mistyped_key_fails():
     ("search.survivors=0", "search.survivors must be a positive count"),
     ("search.stages=[[1.0,16,1.5,2]]", "search.stages entries"),
     ("device=tpu", "device must be auto, cpu or cuda"),
+    ("threads=0", "threads must be auto or an integer >= 1, got 0"),
+    ("threads=many", "threads must be auto or an integer >= 1, got 'many'"),
 ])
 def test_bad_config_values_raise(override, message, tmp_path):
     with pytest.raises(ValueError, match=message):
         run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA, override]), tmp_path)
+
+
+@pytest.mark.parametrize("load, expected", [(0.0, 4), (1.4, 3), (2.6, 1), (9.0, 1)])
+def test_auto_threads_leave_the_busy_cores(monkeypatch, load, expected):
+    from torchfit.run import resolve_threads
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
+    monkeypatch.setattr(os, "getloadavg", lambda: (load, 0.0, 0.0))
+    assert resolve_threads("auto") == expected
+    assert resolve_threads(3) == 3
+
+
+def test_run_uses_the_threads_it_is_given(tmp_path):
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA, "threads=1"]), tmp_path)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_millimetre_mesh_is_rejected(tmp_path):

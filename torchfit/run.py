@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,6 +43,7 @@ __all__ = [
     "fit_recording",
     "params",
     "resolve_device",
+    "resolve_threads",
     "run",
 ]
 
@@ -74,6 +76,24 @@ def resolve_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"device={name} but CUDA is not available on this machine")
     return torch.device(name)
+
+
+def resolve_threads(value) -> int:
+    """CPU threads for torch's operators.
+
+    ``auto``: the cores this process may run on, less those the rest of the machine keeps busy
+    (its one-minute load average, rounded), at least one. Torch's default, one thread per core,
+    waits on the slowest thread at every operator, so a run beside a busy core can take many
+    times as long as one on fewer threads (measured in the README). An integer
+    >= 1 is used as given.
+    """
+    if value == "auto":
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        busy = round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else 0
+        return max(1, min(cores, cores - busy))
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"threads must be auto or an integer >= 1, got {value!r}")
+    return value
 
 
 def build_shape(obj: DictConfig) -> Shape:
@@ -239,8 +259,9 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
 
 
 def context(cfg: DictConfig) -> dict:
-    """The settings every task shares, checked: device, dtype, progress, seed (and compile)."""
+    """The settings every task shares, checked: device, dtype, progress, seed, threads (and compile)."""
     device = resolve_device(str(cfg.device))
+    torch.set_num_threads(resolve_threads(cfg.get("threads", "auto")))
     if cfg.dtype not in ("float32", "float64"):
         raise ConfigError(f"dtype must be float32 or float64, got {cfg.dtype!r}")
     compile_flag = cfg.render.compile
