@@ -100,7 +100,10 @@ def test_auto_threads_leave_the_busy_cores(monkeypatch, load, expected):
 
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
     monkeypatch.setattr(os, "getloadavg", lambda: (load, 0.0, 0.0))
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     assert resolve_threads("auto") == expected
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    assert resolve_threads("auto") == min(expected, 2)
     assert resolve_threads(3) == 3
 
 

@@ -81,8 +81,9 @@ def resolve_device(name: str) -> torch.device:
 def resolve_threads(value) -> int:
     """CPU threads for torch's operators.
 
-    ``auto``: the cores this process may run on, less those the rest of the machine keeps busy
-    (its one-minute load average, rounded), at least one. Torch's default, one thread per core,
+    ``auto``: the cores this process may run on (at most ``OMP_NUM_THREADS`` where that is set),
+    less those the rest of the machine keeps busy (its one-minute load average, rounded), at least
+    one. Torch's default, one thread per core,
     waits on the slowest thread at every operator, so a run beside a busy core can take many
     times as long as one on fewer threads (measured in the README). An integer
     >= 1 is used as given.
@@ -90,7 +91,9 @@ def resolve_threads(value) -> int:
     if value == "auto":
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
         busy = round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else 0
-        return max(1, min(cores, cores - busy))
+        free = max(1, cores - busy)
+        cap = os.environ.get("OMP_NUM_THREADS", "")
+        return min(free, int(cap)) if cap.isdigit() and int(cap) >= 1 else free
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ConfigError(f"threads must be auto or an integer >= 1, got {value!r}")
     return value
