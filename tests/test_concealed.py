@@ -139,6 +139,19 @@ def test_fresh_set_changes_only_the_seeds_and_the_scene(mods):
     assert mc.fresh_folder(0).name == "recordings" and mc.fresh_folder(2).name == "recordings_fresh2"
 
 
+def test_sharp_set_changes_only_the_motion_blur(mods):
+    """--sharp: the same recordings with one render per frame, at the frame's time, in their own folder."""
+    mr, mc = mods
+    for spec, _ in mc.concealed_specs(1):
+        sharp = mc.sharp_spec(spec)
+        assert spec.blur_subframes > 1 and sharp.blur_subframes == 1
+        assert sharp.replace(blur_subframes=spec.blur_subframes) == spec
+        times, subframes = mr.sample_times(sharp)
+        assert np.array_equal(subframes[:, 0], times)
+    assert mc.fresh_folder(0, sharp=True).name == "recordings_sharp"
+    assert mc.fresh_folder(2, sharp=True).name == "recordings_fresh2_sharp"
+
+
 def test_summary_merge_keeps_rows_not_remade(mods):
     _, mc = mods
     kept = [{"name": "control_ball", "v": 1}, {"name": "drag_ball", "v": 1}]

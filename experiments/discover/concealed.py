@@ -489,8 +489,10 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
-         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX) -> None:
+         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
+    if sharp:  # the same set without motion blur (make_concealed.py --sharp)
+        recordings = recordings.with_name(recordings.name + "_sharp")
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
         out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"])
@@ -500,7 +502,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + "".join(f"_with_{name}" for name in extra)
-                            + edge_suffix(edge_px))
+                            + edge_suffix(edge_px) + ("_sharp" if sharp else ""))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -510,7 +512,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         folders = [Path(torchfit.__file__).parent / "recordings" / n for n in names or SHIPPED]
     elif not recordings.exists():
         sys.exit(f"no recordings in {recordings}: run python experiments/discover/make_concealed.py"
-                 + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else ""))
+                 + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else "")
+                 + (" --sharp" if sharp else ""))
     else:
         folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
@@ -533,6 +536,8 @@ if __name__ == "__main__":
     ap.add_argument("--shutter", action="store_true",
                     help="the rolling-shutter set (make_concealed.py --shutter) with rolling_shutter as a candidate "
                          "(results/rolling_shutter[_true_masks]/)")
+    ap.add_argument("--sharp", action="store_true",
+                    help="the set remade without motion blur (make_concealed.py --sharp; results/..._sharp/)")
     ap.add_argument("--with", dest="extra", action="append", default=[], choices=sorted(set(VIDEO_EFFECTS) - set(CANDIDATES)),
                     help="one more candidate besides the defaults (repeatable; results/concealed..._with_<name>/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
@@ -580,7 +585,9 @@ if __name__ == "__main__":
         ap.error(f"--chroma-weight needs a positive weight and segmented concealed recordings, got {args.chroma_weight}")
     if args.shutter and (args.fresh or args.shipped or args.chroma_weight is not None):
         ap.error("--shutter is its own set: not with --fresh, --shipped or --chroma-weight")
+    if args.sharp and (args.shutter or args.shipped):
+        ap.error("--sharp is a concealed set without motion blur: not with --shutter or --shipped")
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter, tuple(args.extra), args.edge_px)
+         args.shutter, tuple(args.extra), args.edge_px, args.sharp)

@@ -8,10 +8,12 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
+    python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
-(``chroma``: results/diagnose_chroma.json).
+(``chroma``: results/diagnose_chroma.json; ``sources``: results/diagnose_sources.json, FRESH is
+the set's number, 0 for the first; it needs MuJoCo, the ``recordings`` extra).
 """
 
 from __future__ import annotations
@@ -248,7 +250,74 @@ def chroma(weights: list[str]) -> dict:
     return out
 
 
+SOURCES = {"as recorded": {}, "no codec": {"lossless": True}, "no sensor noise": {"noise_sigma": 0.0},
+           "no motion blur": {"blur_subframes": 1}, "motion blur alone": {"lossless": True, "noise_sigma": 0.0},
+           "none of them": {"lossless": True, "noise_sigma": 0.0, "blur_subframes": 1}}
+
+
+def _segmentation_error(folder: Path) -> dict:
+    """The default segmentation of ``folder``'s video against its true masks (see :func:`chroma`)."""
+    import torchfit.video as video
+
+    frames, _ = video._read_video(folder / "video.mp4", 0, None)
+    masks = video._segment(frames, video.SegmentationSettings())["masks"]
+    dx, dy, edge = frame_errors(masks, np.load(folder / "masks.npz")["masks"].astype(bool))
+    return {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))),
+            "c_slow": float(np.sqrt(np.mean(_slow(dx - dx.mean())**2 + _slow(dy - dy.mean())**2))),
+            "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
+
+
+def sources(fresh: int, names: list[str]) -> dict:
+    """Which part of the recording makes the segmentation err: each concealed recording remade
+    (same throw, scene and seeds, in a temporary folder) without H.264 (lossless RGB instead:
+    libx264rgb, crf 0), without sensor noise, without motion blur (one render per frame at the
+    frame's time), with motion blur alone (neither codec nor noise) and without all three, and segmented as torchfit does (:func:`_segmentation_error`)."""
+    import tempfile
+    from fractions import Fraction
+
+    import make_concealed as mc
+    import make_recordings as mr
+
+    class Lossless(mr.VideoWriter):
+        def __init__(self, path, spec, width, height):
+            import av
+
+            self.cv_writer = None
+            self.container = av.open(str(path), "w")
+            self.stream = self.container.add_stream("libx264rgb", rate=Fraction(spec.fps).limit_denominator(1001))
+            self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "rgb24"
+            self.stream.options = {"crf": "0", "preset": "ultrafast"}
+
+    mr.offscreen_gl()
+    specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
+    out = {}
+    for name in names:
+        for source, change in SOURCES.items():
+            change = dict(change)
+            writer = Lossless if change.pop("lossless", False) else mr.VideoWriter
+            original, mr.VideoWriter = mr.VideoWriter, writer
+            try:
+                with tempfile.TemporaryDirectory() as tmp:
+                    mr.make_recording(specs[name].replace(**change), Path(tmp), verbose=False)
+                    row = _segmentation_error(Path(tmp) / name)
+            finally:
+                mr.VideoWriter = original
+            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
+            print(fresh, name, source, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+    return out
+
+
 def main(argv: list[str]) -> None:
+    if argv[:1] == ["sources"] and len(argv) > 2:
+        file = HERE / "results" / "diagnose_sources.json"
+        result = json.loads(file.read_text()) if file.exists() else {}
+        result.update(sources(int(argv[1]), argv[2:]))
+        rows = [r for k, r in result.items() if k != "mean" and set(r) == set(SOURCES)]
+        result["mean"] = {s: {k: float(np.mean([r[s][k] for r in rows])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
+                          for s in SOURCES} | {"recordings": len(rows)}
+        print(json.dumps(result["mean"], indent=1))
+        file.write_text(json.dumps(result, indent=1))
+        return
     if argv[:1] == ["chroma"] and len(argv) > 1:
         result = chroma(argv[1:])
         print(json.dumps(result["mean"], indent=1))

@@ -17,7 +17,8 @@ Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), `
 ``--list``, ``--markdown`` (print the table as Markdown, as in CONCEALED.md), ``--fresh K``
 (a fresh set from the same recipes: other seeds and background scene K, in recordings_fresh<K>/),
 ``--shutter`` (the four controls' throws through a rolling shutter, and the controls, in
-recordings_shutter/: ``shutter_specs``).
+recordings_shutter/: ``shutter_specs``), ``--sharp`` (the set without motion blur: one render per frame
+at its time, in recordings[_fresh<K>]_sharp/; everything else as in the set).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -223,6 +224,8 @@ def main(argv=None) -> int:
                     help="a fresh set: seeds moved by 1000 K, background scene K (K >= 1)")
     ap.add_argument("--shutter", action="store_true",
                     help="the rolling-shutter set (shutter_specs) in recordings_shutter/")
+    ap.add_argument("--sharp", action="store_true",
+                    help="without motion blur (one render per frame), in recordings[_fresh<K>]_sharp/")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -230,7 +233,11 @@ def main(argv=None) -> int:
     mr.offscreen_gl()
     if args.fresh < 0:
         raise SystemExit(f"--fresh must be >= 0, got {args.fresh}")
+    if args.sharp and args.shutter:
+        raise SystemExit("--sharp is a concealed set without motion blur: not with --shutter")
     specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)
+    if args.sharp:
+        specs = [(sharp_spec(s), what) for s, what in specs]
     if args.list:
         for s, what in specs:
             print(f"{s.name:18s} {what}")
@@ -241,7 +248,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh))
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)
@@ -270,9 +277,15 @@ def main(argv=None) -> int:
     return 0
 
 
-def fresh_folder(fresh: int) -> Path:
-    """Where set ``fresh`` lives by default (0: the first set)."""
-    return DEFAULT_OUT.with_name(f"recordings_fresh{fresh}") if fresh else DEFAULT_OUT
+def fresh_folder(fresh: int, sharp: bool = False) -> Path:
+    """Where set ``fresh`` lives by default (0: the first set; ``sharp``: its copy without motion blur)."""
+    folder = DEFAULT_OUT.with_name(f"recordings_fresh{fresh}") if fresh else DEFAULT_OUT
+    return folder.with_name(folder.name + "_sharp") if sharp else folder
+
+
+def sharp_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:
+    """The same recording without motion blur: one render per frame, at the frame's time."""
+    return spec.replace(blur_subframes=1)
 
 
 def merge_summary(kept: list[dict], made: list[dict]) -> list[dict]:
