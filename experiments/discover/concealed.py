@@ -9,6 +9,7 @@
     python experiments/discover/concealed.py --shutter [--true-masks] # the rolling-shutter set, + rolling_shutter
     python experiments/discover/concealed.py --with rolling_shutter [...] # one more candidate (results/..._with_<name>/)
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
+    python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
