@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -94,17 +95,31 @@ def test_bad_config_values_raise(override, message, tmp_path):
         run(_compose(["experiment=fit", *TWO_STEPS, *SMALL_DATA, override]), tmp_path)
 
 
-@pytest.mark.parametrize("load, expected", [(0.0, 4), (1.4, 3), (2.6, 1), (9.0, 1)])
-def test_auto_threads_leave_the_busy_cores(monkeypatch, load, expected):
-    from torchfit.run import resolve_threads
+@pytest.mark.parametrize("busy, expected", [(0, 4), (1, 3), (3, 1), (9, 1)])
+def test_auto_threads_leave_the_busy_cores(monkeypatch, busy, expected):
+    import torchfit.run as run_module
 
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2, 3}, raising=False)
-    monkeypatch.setattr(os, "getloadavg", lambda: (load, 0.0, 0.0))
+    monkeypatch.setattr(run_module, "_busy_cores", lambda: busy)
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    assert resolve_threads("auto") == expected
+    assert run_module.resolve_threads("auto") == expected
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
-    assert resolve_threads("auto") == min(expected, 2)
-    assert resolve_threads(3) == 3
+    assert run_module.resolve_threads("auto") == min(expected, 2)
+    assert run_module.resolve_threads(3) == 3
+
+
+@pytest.mark.skipif(not Path("/proc/loadavg").exists(), reason="counts runnable tasks from Linux's /proc")
+def test_a_busy_process_counts_as_a_busy_core():
+    from torchfit.run import _busy_cores
+
+    idle = _busy_cores()
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.5)
+        assert _busy_cores() >= min(idle + 1, 1)
+    finally:
+        spinner.kill()
+        spinner.wait()
 
 
 def test_run_uses_the_threads_it_is_given(tmp_path):

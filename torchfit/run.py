@@ -78,20 +78,38 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def _busy_cores() -> int:
+    """Cores that other work keeps busy now.
+
+    On Linux: the runnable tasks of ``/proc/loadavg`` less this one, the fewest of ten looks
+    20 ms apart (so a task that only flickers, such as this process's own start-up threads, is
+    not counted). The one-minute load average
+    lags: right after a run it still counts that run, and the next one would take one thread
+    too few. Elsewhere it is what there is (rounded).
+    """
+    try:
+        looks = []
+        for _ in range(10):
+            with open("/proc/loadavg") as file:
+                looks.append(int(file.read().split()[3].split("/")[0]) - 1)
+            time.sleep(0.02)
+        return max(0, min(looks))
+    except (OSError, ValueError, IndexError):
+        return round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else 0
+
+
 def resolve_threads(value) -> int:
     """CPU threads for torch's operators.
 
     ``auto``: the cores this process may run on (at most ``OMP_NUM_THREADS`` where that is set),
-    less those the rest of the machine keeps busy (its one-minute load average, rounded), at least
-    one. Torch's default, one thread per core,
-    waits on the slowest thread at every operator, so a run beside a busy core can take many
-    times as long as one on fewer threads (measured in the README). An integer
+    less those other work keeps busy (:func:`_busy_cores`), at least one. Torch's default, one
+    thread per core, waits on the slowest thread at every operator, so a run beside a busy core
+    can take many times as long as one on fewer threads (measured in the README). An integer
     >= 1 is used as given.
     """
     if value == "auto":
         cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        busy = round(os.getloadavg()[0]) if hasattr(os, "getloadavg") else 0
-        free = max(1, cores - busy)
+        free = max(1, cores - _busy_cores())
         cap = os.environ.get("OMP_NUM_THREADS", "")
         return min(free, int(cap)) if cap.isdigit() and int(cap) >= 1 else free
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
