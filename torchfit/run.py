@@ -83,9 +83,8 @@ def _busy_cores() -> int:
 
     On Linux: the runnable tasks of ``/proc/loadavg`` less this one, the fewest of ten looks
     20 ms apart (so a task that only flickers, such as this process's own start-up threads, is
-    not counted). The one-minute load average
-    lags: right after a run it still counts that run, and the next one would take one thread
-    too few. Elsewhere it is what there is (rounded).
+    not counted). Elsewhere the one-minute load average, rounded; it lags (right after a run it
+    still counts that run), which is why it is only the fallback.
     """
     try:
         looks = []

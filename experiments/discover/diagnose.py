@@ -226,10 +226,8 @@ def _slow(values: np.ndarray, window: int = 7) -> np.ndarray:
 
 def chroma(weights: list[str]) -> dict:
     """Segmented against true masks in all three concealed sets, at each chroma weight
-    (``SegmentationSettings.chroma_weight``): centroid error RMS over the frames (px) and of its
-    7-frame moving average less its mean (``c_slow``: the error that follows the scene, which
-    the criterion's AR(1) noise does not expect), and the edge bias's spread and that of its
-    moving average. A constant edge bias is the edge nuisance's, so its mean is only listed."""
+    (``SegmentationSettings.chroma_weight``), each recording's :func:`_error_row`, and their means.
+    A constant edge bias is the edge nuisance's, so its mean is only listed, not averaged."""
     import torchfit.video as video
 
     out = {}
@@ -239,10 +237,7 @@ def chroma(weights: list[str]) -> dict:
         true = np.load(folder / "masks.npz")["masks"].astype(bool)
         for weight in weights:
             masks = video._segment(frames, video.SegmentationSettings(chroma_weight=float(weight)))["masks"]
-            dx, dy, edge = frame_errors(masks, true)
-            row = {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))),
-                   "c_slow": float(np.sqrt(np.mean(_slow(dx - dx.mean())**2 + _slow(dy - dy.mean())**2))),
-                   "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
+            row = _error_row(masks, true)
             out.setdefault(f"{folder.parent.name}/{folder.name}", {})[weight] = row
             print(folder.parent.name, folder.name, weight, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
     out["mean"] = {w: {k: float(np.mean([r[w][k] for r in out.values()])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
@@ -250,18 +245,18 @@ def chroma(weights: list[str]) -> dict:
     return out
 
 
-SOURCES = {"as recorded": {}, "no codec": {"lossless": True}, "no sensor noise": {"noise_sigma": 0.0},
-           "no motion blur": {"blur_subframes": 1}, "motion blur alone": {"lossless": True, "noise_sigma": 0.0},
-           "none of them": {"lossless": True, "noise_sigma": 0.0, "blur_subframes": 1}}
+SOURCES = {"as recorded": {}, "no codec": {"codec": "h264rgb", "crf": 0}, "no sensor noise": {"noise_sigma": 0.0},
+           "no motion blur": {"blur_subframes": 1},
+           "motion blur alone": {"codec": "h264rgb", "crf": 0, "noise_sigma": 0.0},
+           "none of them": {"codec": "h264rgb", "crf": 0, "noise_sigma": 0.0, "blur_subframes": 1}}
 
 
-def _segmentation_error(folder: Path) -> dict:
-    """The default segmentation of ``folder``'s video against its true masks (see :func:`chroma`)."""
-    import torchfit.video as video
-
-    frames, _ = video._read_video(folder / "video.mp4", 0, None)
-    masks = video._segment(frames, video.SegmentationSettings())["masks"]
-    dx, dy, edge = frame_errors(masks, np.load(folder / "masks.npz")["masks"].astype(bool))
+def _error_row(masks: np.ndarray, true: np.ndarray) -> dict:
+    """(T, H, W) bool segmented against true masks: centroid error RMS over the frames (px) and of
+    its 7-frame moving average less its mean (``c_slow``: the error that follows the scene, which
+    the criterion's AR(1) noise does not expect), the edge bias's mean and spread and that of its
+    moving average."""
+    dx, dy, edge = frame_errors(masks, true)
     return {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))),
             "c_slow": float(np.sqrt(np.mean(_slow(dx - dx.mean())**2 + _slow(dy - dy.mean())**2))),
             "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
@@ -271,37 +266,25 @@ def sources(fresh: int, names: list[str]) -> dict:
     """Which part of the recording makes the segmentation err: each concealed recording remade
     (same throw, scene and seeds, in a temporary folder) without H.264 (lossless RGB instead:
     libx264rgb, crf 0), without sensor noise, without motion blur (one render per frame at the
-    frame's time), with motion blur alone (neither codec nor noise) and without all three, and segmented as torchfit does (:func:`_segmentation_error`)."""
+    frame's time), with motion blur alone (neither codec nor noise) and without all three, and
+    segmented with the default settings (:func:`_error_row`)."""
     import tempfile
-    from fractions import Fraction
 
     import make_concealed as mc
     import make_recordings as mr
 
-    class Lossless(mr.VideoWriter):
-        def __init__(self, path, spec, width, height):
-            import av
-
-            self.cv_writer = None
-            self.container = av.open(str(path), "w")
-            self.stream = self.container.add_stream("libx264rgb", rate=Fraction(spec.fps).limit_denominator(1001))
-            self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "rgb24"
-            self.stream.options = {"crf": "0", "preset": "ultrafast"}
+    import torchfit.video as video
 
     mr.offscreen_gl()
     specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
     out = {}
     for name in names:
         for source, change in SOURCES.items():
-            change = dict(change)
-            writer = Lossless if change.pop("lossless", False) else mr.VideoWriter
-            original, mr.VideoWriter = mr.VideoWriter, writer
-            try:
-                with tempfile.TemporaryDirectory() as tmp:
-                    mr.make_recording(specs[name].replace(**change), Path(tmp), verbose=False)
-                    row = _segmentation_error(Path(tmp) / name)
-            finally:
-                mr.VideoWriter = original
+            with tempfile.TemporaryDirectory() as tmp:
+                mr.make_recording(specs[name].replace(**change), Path(tmp), verbose=False)
+                frames, _ = video._read_video(Path(tmp) / name / "video.mp4", 0, None)
+                masks = video._segment(frames, video.SegmentationSettings())["masks"]
+                row = _error_row(masks, np.load(Path(tmp) / name / "masks.npz")["masks"].astype(bool))
             out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
             print(fresh, name, source, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
     return out

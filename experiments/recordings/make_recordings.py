@@ -101,7 +101,7 @@ class RecordingSpec:
     blur_subframes: int = 5  # renders averaged per frame (1 = no blur)
     exposure: float = 0.5  # exposure time as a fraction of the frame interval
     noise_sigma: float = 3.0 / 255.0  # Gaussian sensor noise, in [0, 1] units
-    codec: str = "h264"  # "h264" (libx264 through PyAV, yuv420p like a phone) or an OpenCV fourcc
+    codec: str = "h264"  # "h264" (libx264 through PyAV, yuv420p like a phone), "h264rgb" or an OpenCV fourcc
     crf: int = 14  # H.264 constant rate factor (lower = better; phones record at roughly 14-20)
     shadows: bool = False
     scene_seed: int = 0  # background texture
@@ -782,18 +782,22 @@ def sample_ic(spec: RecordingSpec, scene: Scene, rng: np.random.Generator):
 
 
 class VideoWriter:
-    """Writes RGB uint8 frames: H.264 through PyAV (``codec="h264"``) or any OpenCV fourcc."""
+    """Writes RGB uint8 frames: H.264 through PyAV (``codec="h264"``: libx264, yuv420p like a phone;
+    ``"h264rgb"``: libx264rgb on the RGB frames, lossless at crf 0) or any OpenCV fourcc."""
+
+    H264 = {"h264": ("libx264", "yuv420p", "slow"), "h264rgb": ("libx264rgb", "rgb24", "ultrafast")}
 
     def __init__(self, path: Path, spec: RecordingSpec, width: int, height: int):
         self.container = self.stream = self.cv_writer = None
-        if spec.codec == "h264":
+        if spec.codec in self.H264:
             import av  # the `recordings` extra
 
+            encoder, pix_fmt, preset = self.H264[spec.codec]
             self.container = av.open(str(path), "w")
             fps = spec.fps if spec.fps_stated is None else spec.fps_stated  # what the file says
-            self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
-            self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, "yuv420p"
-            self.stream.options = {"crf": str(int(spec.crf)), "preset": "slow"}
+            self.stream = self.container.add_stream(encoder, rate=Fraction(fps).limit_denominator(1001))
+            self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, pix_fmt
+            self.stream.options = {"crf": str(int(spec.crf)), "preset": preset}
         else:
             self.cv_writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*spec.codec),
                                              float(spec.fps if spec.fps_stated is None
@@ -1041,7 +1045,8 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             "blur_subframes": int(K),
             "exposure_frac": float(spec.exposure),
             "noise_sigma": float(spec.noise_sigma),
-            "codec": spec.codec if spec.codec != "h264" else f"h264 (libx264, yuv420p, crf {spec.crf})",
+            "codec": (f"h264 ({', '.join(VideoWriter.H264[spec.codec][:2])}, crf {spec.crf})"
+                      if spec.codec in VideoWriter.H264 else spec.codec),
             "engine": f"MuJoCo {mj.__version__} (physics RK4 dt={spec.timestep:g}, OpenGL render)",
             "fluid": bool(spec.fluid),
             "fluid_density": float(spec.fluid_density) if spec.fluid else 0.0,
