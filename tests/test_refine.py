@@ -14,6 +14,7 @@ from torchfit.search import (
     Problem,
     _Affine,
     _normal_equations,
+    _pair_first,
     candidate_losses,
     refine,
 )
@@ -120,3 +121,13 @@ def test_far_behind_candidates_are_abandoned_and_the_rest_polished_alone():
     after = refine(problem, cands, crop=48, sigma=0.5, iterations=20, abandon=3.0)
     assert float(after[0]) < 0.5 * float(before[0])
     assert float(after[1]) > 3 * float(after[0])
+
+
+def test_seeds_survive_the_best_of_every_anchor_pair_first():
+    # pair 0's seeds (turns about a symmetry axis) score best and would fill every place by score
+    scores = torch.tensor([0.10, 0.11, 0.12, 0.13, 0.50, 0.40, 0.45, 0.30])
+    pair = torch.tensor([0, 0, 0, 0, 1, 2, 2, 3])
+    kept = _pair_first(scores, pair, 5)
+    assert kept.tolist() == [0, 7, 5, 4, 1]  # best of pairs 0, 3, 2, 1 in score order, then pair 0's next
+    assert _pair_first(scores, pair, 20).tolist() == [0, 7, 5, 4, 1, 2, 3, 6]
+    assert _pair_first(scores, torch.arange(8), 3).tolist() == torch.argsort(scores)[:3].tolist()

@@ -9,7 +9,9 @@ Plan (each stage measured on the MuJoCo recordings; see experiments/fit/README.m
    are refined one frame at a time with Adam (orientation and position).
 3. *Seeds*: each pair of refined orientations (one per anchor frame, times each rotational
    symmetry of the shape) implies an angular velocity ``log(R1 R0ᵀ) / Δt``; the pairs are
-   simulated over the first frames and scored, and the best survive.
+   simulated over the first frames and scored. The best seed of every pair of anchor
+   orientations survives first, then the best of the rest (a symmetry axis gives one seed per
+   sampled turn about it, all scoring alike).
 4. *Refine*: Adam on all survivors as one batch — the whole state and the gravity angles —
    with a time curriculum (first frames first), coarse-to-fine crops and edge widths, and
    successive halving of the candidates; these stages integrate with a coarser RK4 step.
@@ -755,6 +757,22 @@ def _spread(quat: Tensor, symmetries: Tensor, min_angle: float, limit: int) -> l
     return keep
 
 
+def _pair_first(scores: Tensor, pair: Tensor, limit: int) -> Tensor:
+    """Indices of the ``limit`` seeds to keep from their (N,) scores and (N,) anchor-pair ids: the
+    best seed of every pair first (best first), then the best of the rest.
+
+    A shape with a symmetry axis has many seeds per pair of anchor orientations, one per sampled
+    turn about that axis, whose spins differ only about it and which score nearly alike: by score
+    alone one pair's turns could fill every place and leave out the pair that holds the flight.
+    """
+    order = torch.argsort(scores)
+    ranked = pair[order]
+    position = torch.arange(len(order))
+    best = torch.full((int(pair.max()) + 1,), len(order)).scatter_reduce(0, ranked, position, "amin")
+    first = best[ranked] == position
+    return torch.cat([order[first], order[~first]])[:limit]
+
+
 def _distinct(cands: Candidates, losses: Tensor, symmetries: Tensor, limit: int) -> tuple[Candidates, Tensor]:
     """Finite-loss candidates (sorted best first) whose orientations differ by ≥ 5° modulo symmetry."""
     finite = torch.nonzero(torch.isfinite(losses)).flatten()
@@ -820,8 +838,10 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     rel = rot1[None] @ rot0[:, None].transpose(-1, -2)  # (M0, M1*K, 3, 3)
     omega = _log_rotation(rel.reshape(-1, 3, 3)) / max(dt, 1e-6)  # (M0*M1*K, 3)
     base = anchors[0].repeat_interleave(rot1.shape[0], 0)
+    # which pair of anchor orientations each seed comes from: (M0 * M1 * K,)
+    pair = torch.arange(len(anchors[0]) * len(anchors[1])).repeat_interleave(len(symmetries))
     keep = omega.norm(dim=-1) <= settings.max_spin
-    base, omega = base[keep], omega[keep]
+    base, omega, pair = base[keep], omega[keep], pair[keep]
     if first != 0:  # rotate back to t = 0 at constant spin
         t_first = float(problem.times[first])
         base = quat_multiply(axis_angle_to_quat(-omega * t_first), base)
@@ -834,7 +854,7 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
         scores = torch.cat([candidate_losses(problem, seeds.select(idx), seed_frames, 24, 1.5,
                                              rotation_step=settings.coarse_rotation_step)
                             for idx in torch.arange(count).split(512)])
-    order = torch.argsort(scores)[: settings.survivors]
+    order = _pair_first(scores, pair, settings.survivors)
     cands = seeds.select(order)
     history.append(("seeds", time.perf_counter() - clock, float(scores[order[0]]), count))
     say(f"seeds: {count} pairs scored on {seed_frames} frames, {len(cands)} survive, best {float(scores[order[0]]):.5f}")
