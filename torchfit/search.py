@@ -767,8 +767,9 @@ def _pair_first(scores: Tensor, pair: Tensor, limit: int) -> Tensor:
     """
     order = torch.argsort(scores)
     ranked = pair[order]
-    position = torch.arange(len(order))
-    best = torch.full((int(pair.max()) + 1,), len(order)).scatter_reduce(0, ranked, position, "amin")
+    position = torch.arange(len(order), device=order.device)
+    best = torch.full((int(pair.max()) + 1,), len(order), device=order.device)
+    best = best.scatter_reduce(0, ranked, position, "amin")
     first = best[ranked] == position
     return torch.cat([order[first], order[~first]])[:limit]
 
@@ -839,7 +840,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     omega = _log_rotation(rel.reshape(-1, 3, 3)) / max(dt, 1e-6)  # (M0*M1*K, 3)
     base = anchors[0].repeat_interleave(rot1.shape[0], 0)
     # which pair of anchor orientations each seed comes from: (M0 * M1 * K,)
-    pair = torch.arange(len(anchors[0]) * len(anchors[1])).repeat_interleave(len(symmetries))
+    pair = torch.arange(len(anchors[0]) * len(anchors[1]), device=omega.device)
+    pair = pair.repeat_interleave(len(symmetries))
     keep = omega.norm(dim=-1) <= settings.max_spin
     base, omega, pair = base[keep], omega[keep], pair[keep]
     if first != 0:  # rotate back to t = 0 at constant spin
