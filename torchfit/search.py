@@ -265,13 +265,13 @@ def estimate_track(problem: Problem) -> dict:
     accel = coef[2]
     direction = accel / accel.norm().clamp(min=1e-9)
     if accel.norm() < 1e-6 or len(times) < 3:
-        direction = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+        direction = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64, device=times.device)
     tilt0, roll0 = tilt_roll_from_direction(direction)
     # then the reprojection fit: centroids in pixels, log-areas, with the magnitude g fixed
     best = None
     for roll_start in (float(roll0), 0.0):
-        params = torch.cat((coef[0], coef[1], torch.stack((tilt0.clamp(-1.2, 1.2), torch.tensor(roll_start,
-                           dtype=torch.float64))))).clone().requires_grad_()
+        roll = torch.tensor(roll_start, dtype=torch.float64, device=times.device)
+        params = torch.cat((coef[0], coef[1], torch.stack((tilt0.clamp(-1.2, 1.2), roll)))).clone().requires_grad_()
         opt = torch.optim.LBFGS([params], max_iter=200, line_search_fn="strong_wolfe")
 
         def closure():
@@ -358,8 +358,8 @@ def _anchor_orientations(problem: Problem, frame: int, com: Tensor, settings: Se
                             for chunk in grid.split(1024)])
     pool = grid[torch.argsort(scores)[: settings.keep_per_anchor * 8]]
     base = pool[_spread(pool, symmetries, 0.25, settings.keep_per_anchor * 2)]
-    delta = torch.zeros(len(base), 3, dtype=base.dtype, requires_grad=True)
-    shift = torch.zeros(len(base), 3, dtype=base.dtype, requires_grad=True)
+    delta = torch.zeros(len(base), 3, dtype=base.dtype, device=base.device, requires_grad=True)
+    shift = torch.zeros(len(base), 3, dtype=base.dtype, device=base.device, requires_grad=True)
     opt = torch.optim.Adam([{"params": [delta], "lr": 0.05}, {"params": [shift], "lr": 0.004}])
     for step in range(settings.anchor_steps):
         crop, sigma = (32, 1.5) if step < settings.anchor_steps // 2 else (48, 0.8)
@@ -801,8 +801,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     say = progress or (lambda message: None)
     history: list = []
     curve: list = []
-    dtype = problem.masks.dtype
-    symmetries = torch.as_tensor(problem.shape.symmetries, dtype=dtype)
+    dtype, device = problem.masks.dtype, problem.masks.device
+    symmetries = torch.as_tensor(problem.shape.symmetries, dtype=dtype, device=device)
     used_idx = torch.nonzero(problem.used).flatten()
     n_frames = len(problem.times)
 
@@ -813,7 +813,8 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
         f"roll {math.degrees(track['roll']):.1f}°")
 
     def com_at(t: float) -> Tensor:
-        accel = problem.g * gravity_direction(torch.tensor(track["tilt"]), torch.tensor(track["roll"]))
+        accel = problem.g * gravity_direction(torch.tensor(track["tilt"], device=device),
+                                              torch.tensor(track["roll"], device=device))
         return (track["com"] + track["velocity"] * t + 0.5 * accel.to(dtype) * t * t).to(dtype)
 
     # stage 2: anchor frames
@@ -823,7 +824,7 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     second = int(used_idx[torch.argmin(gaps)])
     if second == first:
         second = int(used_idx[min(1, len(used_idx) - 1)])
-    grid = so3_grid(settings.orientations, dtype)
+    grid = so3_grid(settings.orientations, dtype).to(device)
     anchors = []
     for frame in (first, second):
         anchors.append(_anchor_orientations(problem, frame, com_at(float(problem.times[frame])), settings,
@@ -848,14 +849,15 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
         t_first = float(problem.times[first])
         base = quat_multiply(axis_angle_to_quat(-omega * t_first), base)
     count = len(base)
-    seeds = Candidates(base, torch.zeros(count, 3, dtype=dtype), track["com"].to(dtype).expand(count, 3).clone(),
-                       track["velocity"].to(dtype).expand(count, 3).clone(), omega,
-                       torch.tensor([track["tilt"], track["roll"]], dtype=dtype).expand(count, 2).clone())
+    angles = torch.tensor([track["tilt"], track["roll"]], dtype=dtype, device=device)
+    seeds = Candidates(base, torch.zeros(count, 3, dtype=dtype, device=device),
+                       track["com"].to(dtype).expand(count, 3).clone(),
+                       track["velocity"].to(dtype).expand(count, 3).clone(), omega, angles.expand(count, 2).clone())
     seed_frames = min(n_frames, max(settings.seed_frames, second + 3))
     with torch.no_grad():
         scores = torch.cat([candidate_losses(problem, seeds.select(idx), seed_frames, 24, 1.5,
                                              rotation_step=settings.coarse_rotation_step)
-                            for idx in torch.arange(count).split(512)])
+                            for idx in torch.arange(count, device=device).split(512)])
     order = _pair_first(scores, pair, settings.survivors)
     cands = seeds.select(order)
     history.append(("seeds", time.perf_counter() - clock, float(scores[order[0]]), count))
