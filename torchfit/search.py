@@ -840,9 +840,7 @@ def fit(problem: Problem, settings: SearchSettings = SearchSettings(),
     rel = rot1[None] @ rot0[:, None].transpose(-1, -2)  # (M0, M1*K, 3, 3)
     omega = _log_rotation(rel.reshape(-1, 3, 3)) / max(dt, 1e-6)  # (M0*M1*K, 3)
     base = anchors[0].repeat_interleave(rot1.shape[0], 0)
-    # which pair of anchor orientations each seed comes from: (M0 * M1 * K,)
-    pair = torch.arange(len(anchors[0]) * len(anchors[1]), device=omega.device)
-    pair = pair.repeat_interleave(len(symmetries))
+    pair = torch.arange(len(omega), device=device) // len(symmetries)  # (M0*M1*K,) its anchor pair
     keep = omega.norm(dim=-1) <= settings.max_spin
     base, omega, pair = base[keep], omega[keep], pair[keep]
     if first != 0:  # rotate back to t = 0 at constant spin

@@ -42,10 +42,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-from true_masks import load_problem
+from true_masks import load_problem, recording_parts
 
 import torchfit
-from torchfit.camera import Camera
 from torchfit.discover import without_weakest_block
 from torchfit.discover_video import (
     DEFAULT_CANDIDATES,
@@ -68,9 +67,7 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX) -> dict:
-    truth = json.loads((folder / "truth.json").read_text())
-    shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
-    camera = Camera.from_file(folder / "camera.json")
+    truth, shape, camera = recording_parts(folder)
     settings = None if chroma_weight is None else SegmentationSettings(chroma_weight=chroma_weight)
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,

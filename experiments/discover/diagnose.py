@@ -26,19 +26,16 @@ from pathlib import Path
 import numpy as np
 import torch
 from segmentation_error import frame_errors, measure, segment_watching
-from true_masks import load_problem
+from true_masks import load_problem, recording_parts
 
 import torchfit.discover_video as dv
-from torchfit.camera import Camera
-from torchfit.shape import load_shape
 
 HERE = Path(__file__).resolve().parent
 
 
 def _video(folder: Path) -> dv.VideoProblem:
-    truth = json.loads((folder / "truth.json").read_text())
-    shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
-    _, problem, _ = load_problem(folder, shape, Camera.from_file(folder / "camera.json"), False)
+    _, shape, camera = recording_parts(folder)
+    _, problem, _ = load_problem(folder, shape, camera, False)
     return dv.VideoProblem(problem)
 
 
@@ -240,8 +237,7 @@ def chroma(weights: list[str]) -> dict:
             row = _error_row(masks, true)
             out.setdefault(f"{folder.parent.name}/{folder.name}", {})[weight] = row
             print(folder.parent.name, folder.name, weight, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
-    out["mean"] = {w: {k: float(np.mean([r[w][k] for r in out.values()])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
-                   for w in weights}
+    out["mean"] = _means(list(out.values()), weights)
     return out
 
 
@@ -260,6 +256,13 @@ def _error_row(masks: np.ndarray, true: np.ndarray) -> dict:
     return {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))),
             "c_slow": float(np.sqrt(np.mean(_slow(dx - dx.mean())**2 + _slow(dy - dy.mean())**2))),
             "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
+
+
+def _means(rows: list[dict], columns) -> dict:
+    """Per column (a chroma weight, a source) the mean over ``rows`` (each ``{column: _error_row}``)
+    of each error but the edge bias's mean, which the edge nuisance takes up."""
+    return {c: {k: float(np.mean([r[c][k] for r in rows])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
+            for c in columns}
 
 
 def sources(fresh: int, names: list[str]) -> dict:
@@ -296,8 +299,7 @@ def main(argv: list[str]) -> None:
         result = json.loads(file.read_text()) if file.exists() else {}
         result.update(sources(int(argv[1]), argv[2:]))
         rows = [r for k, r in result.items() if k != "mean" and set(r) == set(SOURCES)]
-        result["mean"] = {s: {k: float(np.mean([r[s][k] for r in rows])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
-                          for s in SOURCES} | {"recordings": len(rows)}
+        result["mean"] = _means(rows, SOURCES) | {"recordings": len(rows)}
         print(json.dumps(result["mean"], indent=1))
         file.write_text(json.dumps(result, indent=1))
         return

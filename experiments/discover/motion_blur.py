@@ -29,13 +29,12 @@ import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
+from true_masks import recording_parts
 
-from torchfit.camera import Camera
 from torchfit.discover_video import _moments
 from torchfit.losses import mask_moments
 from torchfit.render import RenderMesh, crop_windows, render_silhouettes
 from torchfit.residuals import CHANNELS, channel_values
-from torchfit.shape import load_shape
 from torchfit.video import _boxes, load_observation
 
 HERE = Path(__file__).resolve().parent
@@ -45,9 +44,7 @@ RAMP = 0.1  # the 0.5 threshold as a ramp this wide in coverage (a sub-pixel edg
 
 def measure(folder: Path) -> dict:
     """Per comparison, per channel ``{"mean", "rms"}`` over the used frames."""
-    truth = json.loads((folder / "truth.json").read_text())
-    shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
-    camera = Camera.from_file(folder / "camera.json")
+    truth, shape, camera = recording_parts(folder)
     per_frame, fps = truth["per_frame"], float(truth["fps"])
     subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
     times, position, rotation = np.array(per_frame["time"]), np.array(per_frame["position"]), np.array(per_frame["R"])

@@ -19,12 +19,10 @@ import time
 from pathlib import Path
 
 import torch
-from true_masks import load_problem
+from true_masks import load_problem, recording_parts
 
-from torchfit.camera import Camera
 from torchfit.rotation import quat_to_matrix
 from torchfit.search import SearchSettings, fit
-from torchfit.shape import load_shape
 
 HERE = Path(__file__).resolve().parent
 SETS = ("recordings", "recordings_fresh1", "recordings_fresh2", "recordings_sharp", "recordings_fresh2_sharp")
@@ -32,9 +30,8 @@ SETS = ("recordings", "recordings_fresh1", "recordings_fresh2", "recordings_shar
 
 def outcome(folder: Path) -> dict:
     """The search's best candidate on ``folder``'s segmented video, against its truth.json."""
-    truth = json.loads((folder / "truth.json").read_text())
-    shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
-    _, problem, _ = load_problem(folder, shape, Camera.from_file(folder / "camera.json"), False)
+    truth, shape, camera = recording_parts(folder)
+    _, problem, _ = load_problem(folder, shape, camera, False)
     clock = time.perf_counter()
     result = fit(problem, SearchSettings())
     rot = quat_to_matrix(result.candidates.quat()[:1].double())[0]

@@ -31,6 +31,13 @@ from torchfit.shape import load_shape
 from torchfit.video import SegmentationSettings, _boxes, load_observation
 
 
+def recording_parts(folder: Path) -> tuple[dict, object, Camera]:
+    """A concealed recording folder's ``truth.json`` (dict), object (:class:`torchfit.shape.Shape`,
+    from ``mesh.obj`` at the true density) and camera (``camera.json``)."""
+    truth = json.loads((folder / "truth.json").read_text())
+    return truth, load_shape(folder / "mesh.obj", density=truth["object"]["density"]), Camera.from_file(folder / "camera.json")
+
+
 def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings: SegmentationSettings | None = None):
     """A recording's observation, fit problem (float32, CPU) and span: its video segmented as
     discover does (with ``settings``, default the defaults), or with the engine's true masks
@@ -46,9 +53,7 @@ def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings
 def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -> None:
     if "/" in target:
         folder = Path(target)
-        truth = json.loads((folder / "truth.json").read_text())
-        shape = load_shape(folder / "mesh.obj", density=truth["object"]["density"])
-        camera = Camera.from_file(folder / "camera.json")
+        _, shape, camera = recording_parts(folder)
     else:
         rec = load_recording(target)
         folder, shape, camera = rec.folder, rec.shape, rec.camera
