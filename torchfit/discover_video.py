@@ -52,7 +52,7 @@ from .discover import (
 from .dynamics import RigidBody
 from .effects import EFFECTS, Effect, lens_model, make_effect, revealed, shutter_model
 from .losses import mask_moments
-from .render import RenderMesh, Shutter, crop_windows, full_window, render_silhouettes
+from .render import RenderMesh, Shutter, crop_windows, full_window, render_silhouettes, silhouette_moments
 from .residuals import (
     CHANNELS,
     UNITS,
@@ -68,7 +68,7 @@ from .search import (
     Problem,
     SearchSettings,
     candidate_poses,
-    candidate_silhouettes,
+    candidate_moments,
     fit,
 )
 from .video import _boxes
@@ -258,30 +258,35 @@ def _moments_at(table: Tensor, bias: tuple[float, float]) -> tuple[Tensor, Tenso
     return area, torch.stack((cu, cv), -1), cov
 
 
-def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarray, crop: int,
-                     sigma: float) -> dict:
-    """The residual channels of the soft render at known poses against masks: the renderer's own error.
+def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarray, crop: int | None = None,
+                     sigma: float = 0.25) -> dict:
+    """The residual channels of the model's silhouettes at known poses against masks: the renderer's own error.
 
     Args:
         shape: the object; camera: intrinsics.
         rot: (T, 3, 3) and trans: (T, 3) the poses (mesh to camera), metres.
         masks: (T, H, W) bool masks of those poses (each non-empty).
-        crop, sigma: the render crop (pixels) and edge width (crop pixels), as :class:`VideoProblem`'s.
+        crop, sigma: None for the exact moments :class:`VideoProblem` fits; else the moments of
+            the soft render at this crop (pixels) and edge width (crop pixels), as the search's.
 
     Returns:
         channel name -> (T,) observed minus rendered (:func:`torchfit.residuals.channel_values`),
-        and ``"stride"`` -> (T,) the crop windows' image pixels per crop pixel.
+        and ``"stride"`` -> (T,) the crop windows' image pixels per crop pixel (0 for exact moments).
     """
     rot, trans = rot.double(), trans.double()
     mesh = RenderMesh.from_shape(shape, torch.float64, rot.device)
-    boxes = torch.as_tensor(_boxes(masks), dtype=torch.float64, device=rot.device)
-    windows = crop_windows(boxes, (crop, crop), margin=0.3)
     with torch.no_grad():
-        cover = render_silhouettes(mesh, camera, rot[None], trans[None], windows[None], size=(crop, crop),
-                                   sigma=sigma)[0]
         observed = mask_moments(torch.as_tensor(masks, dtype=torch.float64, device=rot.device))
-        channels = channel_values(observed, _moments(cover, windows))
-    return {k: v.cpu().numpy() for k, v in channels.items()} | {"stride": windows[:, 2].cpu().numpy()}
+        if crop is None:
+            fitted, stride = silhouette_moments(mesh, camera, rot, trans), torch.zeros(len(rot))
+        else:
+            boxes = torch.as_tensor(_boxes(masks), dtype=torch.float64, device=rot.device)
+            windows = crop_windows(boxes, (crop, crop), margin=0.3)
+            cover = render_silhouettes(mesh, camera, rot[None], trans[None], windows[None], size=(crop, crop),
+                                       sigma=sigma)[0]
+            fitted, stride = _moments(cover, windows), windows[:, 2]
+        channels = channel_values(observed, fitted)
+    return {k: v.cpu().numpy() for k, v in channels.items()} | {"stride": stride.cpu().numpy()}
 
 
 @dataclass
@@ -333,21 +338,22 @@ class VideoProblem:
         candidates: effect names to try.
         holdout: fraction of the used frames (the last ones) held out.
         search: settings of the baseline search from no guess.
-        crop, sigma: render crop (pixels) and edge width (crop pixels) of refits and residuals.
-            Finer than the search's (64, 0.5): a sigmoid edge of width ``sigma * stride`` image
-            pixels overshoots at every convex corner (the max-of-lines distance), so the soft
-            silhouette is larger than the polygon by ~(sigma * stride)^2 per corner. At (64, 0.5)
-            this biased the true poses' scale channel by -0.24 % (cylinder) to -1.1 % (T-handle),
-            and a clock factor of 0.993 soaked it up; at (96, 0.25) the bias is -0.02 % and
-            -0.14 % (experiments/discover/render_bias.py).
         iterations: Levenberg-Marquardt iterations of each refit.
         edge_px: systematic edge accuracy of the segmentation (see :mod:`torchfit.residuals`).
         progress: one-line status messages.
+
+    The refits and residuals take the silhouettes' moments exactly, from the polygon
+    (:func:`torchfit.render.silhouette_moments`), not from rendered pixels. Moments of the soft
+    render were biased: a sigmoid edge of width ``sigma * stride`` image pixels overshoots at
+    every convex corner, so at the search's (64, 0.5) the true poses' scale channel was -0.24 %
+    (cylinder) to -1.1 % (T-handle) off and a clock factor of 0.993 soaked it up; the refits'
+    earlier (96, 0.25) left -0.02 % and -0.14 % (experiments/discover/render_bias.py) and cost
+    half of a run's time.
     """
 
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
-                 search: SearchSettings = SearchSettings(), crop: int = 96, sigma: float = 0.25,
-                 iterations: int = 15, edge_px: float = EDGE_PX, progress: Callable[[str], None] | None = None):
+                 search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
+                 progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -358,7 +364,7 @@ class VideoProblem:
         problem = _as_float64(problem)
         self.problem = problem
         self.candidates = tuple(candidates)
-        self.search, self.crop, self.sigma, self.iterations = search, crop, sigma, iterations
+        self.search, self.iterations = search, iterations
         self.say = progress or (lambda message: None)
         used = problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
@@ -395,13 +401,9 @@ class VideoProblem:
         return {k: v[0].cpu().numpy() for k, v in channels.items()}
 
     def _fitted_moments(self, cands: Candidates, effects: Sequence[Effect]) -> tuple[Tensor, Tensor, Tensor]:
-        """Area (B, T), centroid (B, T, 2) and covariance (B, T, 2, 2) of B candidates' soft
-        silhouettes in every frame (image pixels)."""
-        frames, batch = len(self.problem.times), len(cands)
-        cover = candidate_silhouettes(self.problem, cands, frames, self.crop, self.sigma, effects)
-        windows = self.problem.windows(self.crop).repeat(batch, 1)
-        return tuple(m.reshape(batch, frames, *m.shape[1:])
-                     for m in _moments(cover.reshape(batch * frames, self.crop, self.crop), windows))
+        """Area (B, T), centroid (B, T, 2) and covariance (B, T, 2, 2) of B candidates' silhouettes
+        in every frame (image pixels), exact (:func:`torchfit.search.candidate_moments`)."""
+        return candidate_moments(self.problem, cands, len(self.problem.times), effects)
 
     def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the

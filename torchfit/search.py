@@ -44,6 +44,7 @@ from .render import (
     crop_windows,
     render_silhouettes,
     silhouette_lines,
+    silhouette_moments,
 )
 from .rotation import (
     axis_angle_to_quat,
@@ -54,7 +55,8 @@ from .rotation import (
 )
 from .shape import Shape
 
-__all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "candidate_losses", "candidate_silhouettes",
+__all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "candidate_losses", "candidate_moments",
+           "candidate_silhouettes",
            "estimate_track", "fit", "refine", "rk4_step", "so3_grid"]
 
 log = logging.getLogger(__name__)
@@ -455,6 +457,22 @@ def _pose_lines(problem: Problem, rot: Tensor, position: Tensor, motion: Tensor,
     delay = shutter_model(effects, problem.camera.cy)
     shutter = None if delay is None else Shutter(delay, motion[..., :3], motion[..., 3:])
     return silhouette_lines(problem.mesh, problem.camera, rot, position, windows, lens_model(effects), shutter)
+
+
+def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects: Sequence[Effect] = (),
+                      rotation_step: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Exact area (B, frames), centroid (B, frames, 2) and covariance (B, frames, 2, 2) of the
+    candidates' hard silhouettes, image pixels (:func:`torchfit.render.silhouette_moments`).
+
+    ``rotation_step``: see :func:`candidate_poses`.
+    """
+    rot, position, motion = candidate_poses(problem, cands, frames, effects, rotation_step)
+    batch = rot.shape[0]
+    delay = shutter_model(effects, problem.camera.cy)
+    shutter = None if delay is None else Shutter(delay, motion[..., :3].reshape(-1, 3), motion[..., 3:].reshape(-1, 3))
+    moments = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3), position.reshape(-1, 3),
+                                 lens_model(effects), shutter)
+    return tuple(m.reshape(batch, frames, *m.shape[1:]) for m in moments)
 
 
 def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float | None,

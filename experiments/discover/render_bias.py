@@ -6,7 +6,8 @@ For each shipped MuJoCo recording, render the mesh at the true pose of every fra
 (``truth.json``) with the sigmoid-edge renderer at several (crop, sigma) settings, and compare the
 five residual channels of :mod:`torchfit.residuals` with those of the true masks (``masks.npz``,
 MuJoCo's own segmentation, no video): dynamics and segmentation are out of the loop, what is left
-is the renderer (``torchfit.discover_video.render_residuals``). A sigmoid edge overshoots at convex
+is the renderer (``torchfit.discover_video.render_residuals``); ``exact`` is the polygon's moments
+(:func:`torchfit.render.silhouette_moments`), which discover's refits use since 2026-11-26. A sigmoid edge overshoots at convex
 corners (the distance is the largest edge-line distance), so the soft silhouette is larger than the
 polygon by about (sigma * stride)^2 per corner; the mean of ``scale`` (log size) shows that bias,
 the spread of ``shape`` the part that follows the pose. Writes results/render_bias.json.
@@ -24,7 +25,7 @@ import torch
 from torchfit.discover_video import render_residuals
 from torchfit.paper._recording import load_recording
 
-SETTINGS = ((64, 0.5), (64, 0.25), (96, 0.25), (128, 0.25), (256, 0.25))
+SETTINGS = ((64, 0.5), (64, 0.25), (96, 0.25), (128, 0.25), (256, 0.25), (None, None))  # None: exact moments
 OUT = Path(__file__).resolve().parent / "results" / "render_bias.json"
 
 
@@ -38,7 +39,7 @@ def render_bias(name: str) -> dict:
     for crop, sigma in SETTINGS:
         channels = render_residuals(rec.shape, rec.camera, rot, trans, masks, crop, sigma)
         stride = channels.pop("stride")
-        out[f"{crop}/{sigma}"] = {"stride_px": float(stride.mean()),
+        out["exact" if crop is None else f"{crop}/{sigma}"] = {"stride_px": float(stride.mean()),
                                   **{k: {"mean": float(v.mean()), "std": float(v.std())} for k, v in channels.items()}}
     return out
 

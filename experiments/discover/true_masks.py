@@ -1,13 +1,13 @@
 """Discover's baseline and single-effect refits on a recording's true masks instead of its segmented ones.
 
-    python experiments/discover/true_masks.py FOLDER_OR_NAME [effects] [--segmented] [--render=CROP,SIGMA]   # ~3-8 min
+    python experiments/discover/true_masks.py FOLDER_OR_NAME [effects] [--segmented]   # ~3-8 min
 
 FOLDER_OR_NAME: a shipped recording's name (``cylinder``) or a recording folder with video.mp4,
 camera.json, mesh.obj, truth.json and masks.npz (``experiments/discover/recordings/control_cylinder``).
 effects: comma-separated (default ``time_scale,quadratic_drag``). With ``--segmented`` the video's
-segmented masks are used, as discover does; otherwise MuJoCo's true masks. ``--render`` sets the
-refits' render crop and edge width (default: discover's). Where a refit on the
-true masks finds nothing and the same refit on the segmented masks does, the segmentation, not the
+segmented masks are used, as discover does; otherwise MuJoCo's true masks. (``--render=CROP,SIGMA``,
+the refits' render crop and edge width, went when the refits took exact moments, 2026-11-26.) Where
+a refit on the true masks finds nothing and the same refit on the segmented masks does, the segmentation, not the
 model or the renderer, made the difference. Prints each model's parameters, edge bias, ΔBIC and
 held-out centroid error.
 """
@@ -50,7 +50,7 @@ def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings
     return observation, problem, span
 
 
-def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -> None:
+def main(target: str, effects: tuple[str, ...], segmented: bool) -> None:
     if "/" in target:
         folder = Path(target)
         _, shape, camera = recording_parts(folder)
@@ -58,7 +58,7 @@ def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -
         rec = load_recording(target)
         folder, shape, camera = rec.folder, rec.shape, rec.camera
     _, problem, _ = load_problem(folder, shape, camera, true_masks=not segmented)
-    video = VideoProblem(problem, candidates=effects, progress=print, **render)
+    video = VideoProblem(problem, candidates=effects, progress=print)
     base = video.fit((), None)
     print(f"masks: {'segmented' if segmented else 'true'}; baseline edge bias {base.payload['edge_px']['value']:+.3f} px, "
           f"held-out centroid {base.payload['heldout_centroid_px']:.3f} px")
@@ -72,12 +72,6 @@ def main(target: str, effects: tuple[str, ...], segmented: bool, render: dict) -
 
 if __name__ == "__main__":
     args = [a for a in sys.argv[1:] if not a.startswith("--")]
-    render = {}
-    for flag in sys.argv[1:]:
-        if flag.startswith("--render="):
-            crop, sigma = flag.split("=", 1)[1].split(",")
-            render = {"crop": int(crop), "sigma": float(sigma)}
     if not args:
         sys.exit(__doc__)
-    main(args[0], tuple((args[1] if len(args) > 1 else "time_scale,quadratic_drag").split(",")), "--segmented" in sys.argv,
-         render)
+    main(args[0], tuple((args[1] if len(args) > 1 else "time_scale,quadratic_drag").split(",")), "--segmented" in sys.argv)
