@@ -87,10 +87,10 @@ DEFAULT_CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", 
 
 # Segmentation edge accuracy (pixels) in the noise floor: calibrated on the shipped recordings,
 # which hide nothing (experiments/discover/calibrate_noise.py, the rule: the grid value that brings
-# the largest chi-squared per observation of a baseline to about 1). With the refits' render at
-# crop 96, sigma 0.25 and the residuals whitened for FRAME_CORRELATION: 0.45-1.07 at 0.1 px,
-# 0.29-0.75 at 0.15 px. (At crop 64, sigma 0.5, not whitened, it was 0.2 px: the renderer's own
-# corner bias was in the residuals.)
+# the largest chi-squared per observation of a baseline to about 1). With the refits' exact moments
+# and the residuals whitened for FRAME_CORRELATION: 0.41-1.04 at 0.1 px, 0.27-0.69 at 0.15 px
+# (2026-11-26; with the render at crop 96, sigma 0.25 it was 0.45-1.07 and 0.29-0.75; at crop 64,
+# sigma 0.5, not whitened, 0.2 px: the renderer's own corner bias was in the residuals).
 EDGE_PX = 0.1
 
 # Lag-one correlation of the segmentation error from frame to frame (AR(1) noise in every channel):
