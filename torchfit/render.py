@@ -547,7 +547,7 @@ def _outside_moments(edges: Tensor, lines: Tensor, drawn: Tensor) -> Tensor:
     """(N, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` of the union of convex parts from
     their (N, P, K, 2, 2) walked contour edges, (N, P, K, 3) lines (both about one origin) and
     (N, P, K) drawn flags: Green's theorem over the edges' pieces outside the other parts."""
-    count, parts, per_part = lines.shape[:3]
+    parts = lines.shape[1]
     start, end = edges[..., 0, :], edges[..., 1, :]  # (N, P, K, 2)
     if parts > 1:
         # f(t) = n_l . (start + t d) + c_l for every edge (p, k) and every other part's line (q, l)
