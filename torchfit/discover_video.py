@@ -50,9 +50,9 @@ from .discover import (
     wald_statistic,
 )
 from .dynamics import RigidBody
-from .effects import EFFECTS, Effect, lens_model, make_effect, revealed, shutter_model
-from .losses import mask_moments
-from .render import RenderMesh, Shutter, crop_windows, full_window, render_silhouettes, silhouette_moments
+from .effects import EFFECTS, Effect, make_effect, revealed
+from .losses import central_moments, mask_moments
+from .render import RenderMesh, crop_windows, full_window, render_silhouettes, silhouette_moments
 from .residuals import (
     CHANNELS,
     UNITS,
@@ -68,6 +68,7 @@ from .search import (
     Problem,
     SearchSettings,
     candidate_poses,
+    camera_effects,
     candidate_moments,
     fit,
 )
@@ -250,12 +251,7 @@ def _moments_at(table: Tensor, bias: tuple[float, float]) -> tuple[Tensor, Tenso
         low = min(int(position), len(grid) - 2)
         frac = position - low
         raw = (1 - frac) * raw[low] + frac * raw[low + 1]  # the first axis interpolated away
-    area = raw[:, 0]
-    safe = area.clamp(min=1e-12)
-    cu, cv = raw[:, 1] / safe, raw[:, 2] / safe
-    cuu, cuv, cvv = raw[:, 3] / safe - cu * cu, raw[:, 4] / safe - cu * cv, raw[:, 5] / safe - cv * cv
-    cov = torch.stack((torch.stack((cuu, cuv), -1), torch.stack((cuv, cvv), -1)), -2)
-    return area, torch.stack((cu, cv), -1), cov
+    return central_moments(raw)
 
 
 def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarray, crop: int | None = None,
@@ -864,12 +860,11 @@ def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> 
     frames = len(problem.times)
     with torch.no_grad():
         rot, position, motion = candidate_poses(problem, model.cands, frames, effects)
-        delay = shutter_model(effects, problem.camera.cy)
-        shutter = None if delay is None else Shutter(delay, motion[..., :3], motion[..., 3:])
+        distort, shutter = camera_effects(problem, effects, motion)
         window = full_window(problem.camera, 1, frames, dtype=problem.masks.dtype, device=problem.masks.device)
         cover = render_silhouettes(problem.mesh, problem.camera, rot, position, window,
                                    size=tuple(problem.masks.shape[-2:]), sigma=None,
-                                   distort=lens_model(effects), shutter=shutter)[0]
+                                   distort=distort, shutter=shutter)[0]
         return (cover > 0.5).cpu().numpy()
 
 

@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
-__all__ = ["sample_targets", "silhouette_loss", "mask_moments"]
+__all__ = ["sample_targets", "silhouette_loss", "mask_moments", "central_moments"]
 
 
 def sample_targets(masks: Tensor, windows: Tensor, size: tuple[int, int]) -> Tensor:
@@ -89,6 +89,18 @@ def coverage_residuals(coverage: Tensor, target: Tensor, weights: Tensor, centro
     pixels = (coverage - target) * (share / (height * width)).sqrt()[:, None, None]
     offset = (_centroid(coverage) - _centroid(target)) * (centroid_weight * share).sqrt()[:, None]  # (B, T, 2)
     return torch.cat((pixels.flatten(-2), offset), -1)
+
+
+def central_moments(raw: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Area (N,), centroid (N, 2) and covariance (N, 2, 2), as :func:`mask_moments` gives them,
+    from (N, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` about one origin (the centroid is
+    about that origin too; 0 where the area is)."""
+    area = raw[:, 0]
+    safe = area.clamp(min=1e-12)
+    cu, cv = raw[:, 1] / safe, raw[:, 2] / safe
+    cuu, cuv, cvv = raw[:, 3] / safe - cu * cu, raw[:, 4] / safe - cu * cv, raw[:, 5] / safe - cv * cv
+    cov = torch.stack((torch.stack((cuu, cuv), -1), torch.stack((cuv, cvv), -1)), -2)
+    return area, torch.stack((cu, cv), -1), cov
 
 
 def mask_moments(masks: Tensor) -> tuple[Tensor, Tensor, Tensor]:

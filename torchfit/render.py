@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from .camera import Camera, project
+from .losses import central_moments
 
 __all__ = [
     "RenderMesh",
@@ -473,8 +474,8 @@ def render_silhouettes(
             it sees all B·T poses at once, candidate-major (a per-candidate lens such as
             :meth:`torchfit.effects.LensDistortion.distort` with (B,) parameters maps row ``n``
             to candidate ``n // T``).
-        shutter: optional rolling shutter (:class:`Shutter`) with (B, T, 3) velocities; its
-            ``delay`` sees the B·T poses' rows, candidate-major.
+        shutter: optional rolling shutter (:class:`Shutter`) with (B, T, 3) or (B·T, 3)
+            velocities; its ``delay`` sees the B·T poses' rows, candidate-major.
 
     Returns:
         (B, T, H, W) coverage in [0, 1].
@@ -535,12 +536,8 @@ def silhouette_moments(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Ten
     step = max(1, budget // max(parts * per_part * parts * per_part * 2, 1))
     raw = torch.cat([_outside_moments(edges[i:i + step], lines[i:i + step], contour.drawn[i:i + step])
                      for i in range(0, len(edges), step)]) if len(edges) else edges.new_zeros(0, 6)
-    area = raw[:, 0]
-    safe = area.clamp(min=1e-12)
-    cu, cv = raw[:, 1] / safe, raw[:, 2] / safe
-    cuu, cuv, cvv = raw[:, 3] / safe - cu * cu, raw[:, 4] / safe - cu * cv, raw[:, 5] / safe - cv * cv
-    cov = torch.stack((torch.stack((cuu, cuv), -1), torch.stack((cuv, cvv), -1)), -2)
-    return area, torch.stack((cu, cv), -1) + origin, cov
+    area, centroid, cov = central_moments(raw)
+    return area, centroid + origin, cov
 
 
 def _outside_moments(edges: Tensor, lines: Tensor, drawn: Tensor) -> Tensor:

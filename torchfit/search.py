@@ -55,8 +55,8 @@ from .rotation import (
 )
 from .shape import Shape
 
-__all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "candidate_losses", "candidate_moments",
-           "candidate_silhouettes",
+__all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "camera_effects", "candidate_losses",
+           "candidate_moments", "candidate_silhouettes",
            "estimate_track", "fit", "refine", "rk4_step", "so3_grid"]
 
 log = logging.getLogger(__name__)
@@ -454,9 +454,17 @@ def _pose_lines(problem: Problem, rot: Tensor, position: Tensor, motion: Tensor,
     """(B, F, P, K, 3) edge lines of (B, F) poses with their (B, F, 6) motion (used by a rolling
     shutter) in the first F frames' crop windows."""
     windows = problem.windows(crop)[: rot.shape[1]].expand(rot.shape[0], rot.shape[1], 3)
+    return silhouette_lines(problem.mesh, problem.camera, rot, position, windows, *camera_effects(problem, effects, motion))
+
+
+def camera_effects(problem: Problem, effects: Sequence[Effect],
+                   motion: Tensor) -> tuple[Callable[[Tensor], Tensor] | None, Shutter | None]:
+    """The lens (:func:`torchfit.effects.lens_model`) and rolling shutter among ``effects`` for
+    poses moving with (..., 6) ``motion`` (:func:`candidate_poses`), the shutter's velocities
+    flattened to the poses' rows; None for each that is absent."""
     delay = shutter_model(effects, problem.camera.cy)
-    shutter = None if delay is None else Shutter(delay, motion[..., :3], motion[..., 3:])
-    return silhouette_lines(problem.mesh, problem.camera, rot, position, windows, lens_model(effects), shutter)
+    shutter = None if delay is None else Shutter(delay, motion[..., :3].reshape(-1, 3), motion[..., 3:].reshape(-1, 3))
+    return lens_model(effects), shutter
 
 
 def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects: Sequence[Effect] = (),
@@ -468,10 +476,8 @@ def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects:
     """
     rot, position, motion = candidate_poses(problem, cands, frames, effects, rotation_step)
     batch = rot.shape[0]
-    delay = shutter_model(effects, problem.camera.cy)
-    shutter = None if delay is None else Shutter(delay, motion[..., :3].reshape(-1, 3), motion[..., 3:].reshape(-1, 3))
     moments = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3), position.reshape(-1, 3),
-                                 lens_model(effects), shutter)
+                                 *camera_effects(problem, effects, motion))
     return tuple(m.reshape(batch, frames, *m.shape[1:]) for m in moments)
 
 
