@@ -10,17 +10,27 @@ segmentation and 0.01 px on true masks). Printed: each one's error at the first 
 against truth.json: rotation (degrees, modulo the shape's symmetries), position (mm), its depth
 part (% of depth), its lateral part (mm) and the gravity direction (degrees).
 """
-import sys, math, json, time
+
+from __future__ import annotations
+
+import math
+import sys
+import time
 from pathlib import Path
-import numpy as np, torch
+
+import torch
 from make_concealed import fresh_folder
-from true_masks import recording_parts, load_problem
+from true_masks import load_problem, recording_parts
+
 import torchfit.discover_video as dv
 from torchfit.discover_video import VideoProblem
-from torchfit.search import fit, SearchSettings
 from torchfit.rotation import quat_to_matrix, rotation_angle
+from torchfit.search import SearchSettings, fit
 
-def errors(state, grav, truth, frame, shape):
+
+
+def errors(state, grav, truth, frame, shape) -> dict:
+    """Errors of a (13,) state and (3,) gravity against truth.json's frame ``frame``."""
     pf = truth["per_frame"]
     R = torch.tensor(pf["R"][frame], dtype=torch.float64); p = torch.tensor(pf["position"][frame], dtype=torch.float64)
     sym = torch.as_tensor(shape.symmetries, dtype=torch.float64)
@@ -30,6 +40,7 @@ def errors(state, grav, truth, frame, shape):
     return dict(rot=math.degrees(float(rotation_angle(R, rot @ sym).min())), pos_mm=1000*float(d.norm()),
                 depth_pct=100*float(d[2]/p[2]), lat_mm=1000*float(d[:2].norm()),
                 grav=math.degrees(float(torch.acos((grav / grav.norm() @ gdir).clamp(-1, 1)))))
+
 
 for arg in sys.argv[1:]:
     fresh, name, kind = arg.split(":")
