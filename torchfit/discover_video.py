@@ -3,8 +3,8 @@
 The data are the five residual channels of :mod:`torchfit.residuals` per frame (centroid x and y,
 scale, shape, orientation), each divided by its noise floor, which is estimated once from the
 baseline fit's residuals (frame-to-frame jitter plus an edge term of ``EDGE_PX``): so ``RSS`` is a
-chi-squared and the noise variance is 1. The fitted silhouettes' moments come from the soft
-renderer in each frame's crop window.
+chi-squared and the noise variance is 1. The fitted silhouettes' moments are exact, from the
+polygon (:func:`torchfit.render.silhouette_moments`).
 
 The baseline is torchfit's search from no guess. Every model is then fitted by Levenberg-Marquardt
 on exactly that chi-squared (float64; finite-difference Jacobian, the 14 state columns as one batch
