@@ -5,10 +5,11 @@
 
 For each recording: the search from no guess (`torchfit.search.fit`, its pixel polish at crop 64,
 edge 0.5 crop px), then discover's baseline refinement from it (Levenberg-Marquardt on the exact
-silhouette moments with the edge nuisance, ``VideoProblem.fit(())``, edge term 0.1 px on the
-segmentation and 0.01 px on true masks). Printed: each one's error at the first fitted frame
-against truth.json: rotation (degrees, modulo the shape's symmetries), position (mm), its depth
-part (% of depth), its lateral part (mm) and the gravity direction (degrees).
+silhouette moments with the edge nuisance, ``VideoProblem.fit(())``, noise floor's edge term
+``EDGE_PX`` on the segmentation and ``concealed.EXACT_EDGE_PX`` on true masks). Printed: each
+one's error at the first fitted frame (:func:`torchfit.report.score_against_truth`): rotation
+(degrees, modulo the shape's symmetries), position (mm) and its lateral part (mm), gravity
+direction (degrees).
 """
 
 from __future__ import annotations
@@ -17,55 +18,50 @@ import math
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
+from concealed import EXACT_EDGE_PX
 from make_concealed import fresh_folder
 from true_masks import load_problem, recording_parts
 
 import torchfit.discover_video as dv
-from torchfit.discover_video import VideoProblem
-from torchfit.rotation import quat_to_matrix, rotation_angle
+from torchfit.report import score_against_truth
 from torchfit.search import SearchSettings, fit
 
+SHIPPED = Path(__file__).resolve().parents[2] / "torchfit" / "recordings"
 
 
-def errors(state, grav, truth, frame, shape) -> dict:
-    """Errors of a (13,) state and (3,) gravity against truth.json's frame ``frame``."""
-    pf = truth["per_frame"]
-    R = torch.tensor(pf["R"][frame], dtype=torch.float64); p = torch.tensor(pf["position"][frame], dtype=torch.float64)
-    sym = torch.as_tensor(shape.symmetries, dtype=torch.float64)
-    rot = quat_to_matrix(state[3:7])
-    gdir = torch.tensor(truth["gravity_dir"], dtype=torch.float64)
-    d = state[0:3] - p
-    return dict(rot=math.degrees(float(rotation_angle(R, rot @ sym).min())), pos_mm=1000*float(d.norm()),
-                depth_pct=100*float(d[2]/p[2]), lat_mm=1000*float(d[:2].norm()),
-                grav=math.degrees(float(torch.acos((grav / grav.norm() @ gdir).clamp(-1, 1)))))
+def errors(folder: Path, state: torch.Tensor, cands, problem, shape, span) -> str:
+    """One line of a (1, 13) state's errors against ``folder``'s truth.json (``cands``: its
+    :class:`torchfit.search.Candidates`, for the gravity)."""
+    score = score_against_truth(str(folder / "truth.json"), SimpleNamespace(state=state, candidates=cands,
+                                losses=torch.zeros(1)), problem, shape, span)
+    truth = recording_parts(folder)[0]["per_frame"]["position"][int(span[0])]
+    lateral = 1000 * math.dist(state[0, :2].double().tolist(), truth[:2])
+    return (f"rot={score['rotation_error_deg']:.3f} pos_mm={1000 * score['position_error_m']:.3f} "
+            f"lat_mm={lateral:.3f} grav={score['gravity_error_deg']:.3f}")
 
 
-for arg in sys.argv[1:]:
-    fresh, name, kind = arg.split(":")
-    folder = (Path(__file__).resolve().parents[2] / "torchfit" / "recordings" if fresh == "ship"
-              else fresh_folder(int(fresh))) / name
-    truth, shape, camera = recording_parts(folder)
-    obs, problem, span = load_problem(folder, shape, camera, kind == "true")
-    frame = int(span[0])
-    t0 = time.perf_counter()
-    result = fit(problem, SearchSettings(), progress=None)
-    st = result.state[0].detach().double(); gr = result.candidates.gravity(problem.g)[0].detach().double()
-    e_search = errors(st, gr, truth, frame, shape)
-    edge = 0.1 if kind == "seg" else 0.01
-    video = VideoProblem(problem, candidates=(), edge_px=edge)
-    # VideoProblem.fit runs the search itself: hand it this one
-    orig = dv.fit
-    dv.fit = lambda *a, **k: result
-    try:
-        mf = video.fit((), None)
-    finally:
-        dv.fit = orig
-    model = mf.payload["model"]
-    c = model.cands
-    st2 = c.state(video.problem.body)[0].double()
-    gr2 = c.gravity(problem.g)[0].double()
-    e_lm = errors(st2, gr2, truth, frame, shape)
-    print(f"{fresh}:{name}:{kind} search " + " ".join(f"{k}={v:.3f}" for k, v in e_search.items())
-          + " | LM " + " ".join(f"{k}={v:.3f}" for k, v in e_lm.items()) + f" edge {model.edge[0]:+.3f} ({time.perf_counter()-t0:.0f}s)", flush=True)
+def main(args: list[str]) -> None:
+    for arg in args:
+        which, name, kind = arg.split(":")
+        folder = (SHIPPED if which == "ship" else fresh_folder(int(which))) / name
+        _, shape, camera = recording_parts(folder)
+        _, problem, span = load_problem(folder, shape, camera, kind == "true")
+        clock = time.perf_counter()
+        result = fit(problem, SearchSettings(), progress=None)
+        video = dv.VideoProblem(problem, candidates=(), edge_px=dv.EDGE_PX if kind == "seg" else EXACT_EDGE_PX)
+        search, dv.fit = dv.fit, lambda *a, **k: result  # VideoProblem.fit runs the search: hand it this one
+        try:
+            model = video.fit((), None).payload["model"]
+        finally:
+            dv.fit = search
+        refined = model.cands.state(video.problem.body)
+        print(f"{arg} search {errors(folder, result.state[:1], result.candidates, problem, shape, span)} | "
+              f"LM {errors(folder, refined, model.cands, problem, shape, span)} edge {model.edge[0]:+.3f} "
+              f"({time.perf_counter() - clock:.0f} s)", flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
