@@ -65,6 +65,7 @@ from .residuals import (
 from .search import (
     SCALES,
     Candidates,
+    FitResult,
     Problem,
     SearchSettings,
     candidate_poses,
@@ -778,17 +779,19 @@ class VideoProblem:
                 values[name] = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in EFFECTS[name].null_params.items()}
         return _Model(start.cands.select(torch.zeros(1, dtype=torch.long)), values, start.edge)
 
-    def fit(self, effects: tuple[str, ...], warm: ModelFit | None) -> ModelFit:
-        """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction)."""
+    def fit(self, effects: tuple[str, ...], warm: ModelFit | None, searched: FitResult | None = None) -> ModelFit:
+        """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction).
+
+        The baseline (no ``effects``) starts from ``searched``, torchfit's search's result on this
+        problem, or runs that search when None."""
         clock = time.perf_counter()
         everything = self.problem.used.cpu().numpy().astype(bool)
         if not effects:
-            result = fit(self.search_problem, self.search, progress=None)
+            result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
             best = result.candidates.select(torch.zeros(1, dtype=torch.long))
             start = _Model(Candidates(*(getattr(best, f).double().to(self.problem.masks.device)
                                         for f in best.fields())), {})
             self._set_noise(start)
-            everything = self.problem.used.cpu().numpy().astype(bool)
             model, resid, jac = self._lm(start, everything, self.iterations)
             held_model, _, _ = self._lm(model, self.train, self.iterations)
         else:

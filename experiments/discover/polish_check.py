@@ -4,9 +4,10 @@
     # SET: ship (torchfit/recordings) or 0, 1, 2 (the concealed sets); MASKS: seg or true
 
 For each recording: the search from no guess (`torchfit.search.fit`, its pixel polish at crop 64,
-edge 0.5 crop px), then discover's baseline refinement from it (Levenberg-Marquardt on the exact
-silhouette moments with the edge nuisance, ``VideoProblem.fit(())``, noise floor's edge term
-``EDGE_PX`` on the segmentation and ``concealed.EXACT_EDGE_PX`` on true masks). Printed: each
+edge 0.5 crop px), then discover's baseline refinement from that same search result
+(Levenberg-Marquardt on the exact silhouette moments with the edge nuisance,
+``VideoProblem.fit((), None, searched=...)``, noise floor's edge term ``EDGE_PX`` on the
+segmentation and ``concealed.EXACT_EDGE_PX`` on true masks). Printed: each
 one's error at the first fitted frame (:func:`torchfit.report.score_against_truth`): rotation
 (degrees, modulo the shape's symmetries), position (mm) and its lateral part (mm), gravity
 direction (degrees).
@@ -25,7 +26,7 @@ from concealed import EXACT_EDGE_PX
 from make_concealed import fresh_folder
 from true_masks import load_problem, recording_parts
 
-import torchfit.discover_video as dv
+from torchfit.discover_video import EDGE_PX, VideoProblem
 from torchfit.report import score_against_truth
 from torchfit.search import SearchSettings, fit
 
@@ -51,12 +52,8 @@ def main(args: list[str]) -> None:
         _, problem, span = load_problem(folder, shape, camera, kind == "true")
         clock = time.perf_counter()
         result = fit(problem, SearchSettings(), progress=None)
-        video = dv.VideoProblem(problem, candidates=(), edge_px=dv.EDGE_PX if kind == "seg" else EXACT_EDGE_PX)
-        search, dv.fit = dv.fit, lambda *a, **k: result  # VideoProblem.fit runs the search: hand it this one
-        try:
-            model = video.fit((), None).payload["model"]
-        finally:
-            dv.fit = search
+        video = VideoProblem(problem, candidates=(), edge_px=EDGE_PX if kind == "seg" else EXACT_EDGE_PX)
+        model = video.fit((), None, searched=result).payload["model"]
         refined = model.cands.state(video.problem.body)
         print(f"{arg} search {errors(folder, result.state[:1], result.candidates, problem, shape, span)} | "
               f"LM {errors(folder, refined, model.cands, problem, shape, span)} edge {model.edge[0]:+.3f} "
