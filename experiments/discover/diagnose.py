@@ -9,6 +9,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
+    python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -293,6 +294,73 @@ def sources(fresh: int, names: list[str]) -> dict:
     return out
 
 
+def _raw(moments: tuple) -> torch.Tensor:
+    """(N, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` from (area, centroid, covariance)."""
+    area, (cu, cv), cov = moments[0], moments[1].unbind(-1), moments[2]
+    return torch.stack((area, area * cu, area * cv, area * (cov[:, 0, 0] + cu * cu),
+                        area * (cov[:, 0, 1] + cu * cv), area * (cov[:, 1, 1] + cv * cv)), -1)
+
+
+def _stats(values: np.ndarray) -> dict:
+    """Mean, spread about it, frame-to-frame jitter (second differences / sqrt 6) and the spread of
+    the 7-frame moving average (the slow part) of (T,) per-frame values."""
+    centred = values - values.mean()
+    return {"mean": float(values.mean()), "rms": float(centred.std()),
+            "jitter": float(np.std(np.diff(values, 2)) / np.sqrt(6)), "slow": float(_slow(centred).std())}
+
+
+def blur(folder: Path, near_px: str = "4") -> dict:
+    """Is the soft coverage a better observation once the model blurs too? The five channels of
+    the segmented mask and of its soft coverage (the per-pixel estimate before smoothing and
+    threshold, clipped to [0, 1], within ``near_px`` of the mask) against the exact moments of the
+    true silhouette at the frame's time (``mid``) and against the average of its raw moments over
+    the exposure (``exposure``: the recordings' own sub-frames, poses splined as in
+    motion_blur.py). Moments are linear in coverage, so the blurred frame's coverage has exactly
+    the exposure average's moments; the 0.5 contour of a blurred silhouette has not. Per pair and
+    channel: :func:`_stats` over the frames where the mask is whole."""
+    from scipy import ndimage
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, RotationSpline
+
+    from torchfit.losses import central_moments, mask_moments
+    from torchfit.render import RenderMesh, silhouette_moments
+    from torchfit.residuals import channel_values
+
+    truth, shape, camera = recording_parts(folder)
+    if any(abs(c) > 0 for c in camera.dist_coeffs):
+        raise SystemExit(f"{folder.name}: a lens recording; the exact moments here take no distortion")
+    per_frame, fps = truth["per_frame"], float(truth["fps"])
+    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
+    times, position = np.array(per_frame["time"]), np.array(per_frame["position"])
+    rotation = np.array(per_frame["R"])
+    offsets = (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
+    # the first and last frames' sub-frames lie outside the frame times: the cubic extrapolates,
+    # the rotation spline cannot, so the end frames' rotation is the nearest (clipped) one
+    sub_times = times[:, None] + offsets[None]  # (T, K)
+    sub_position = CubicSpline(times, position)(sub_times)
+    sub_rotation = RotationSpline(times, Rotation.from_matrix(rotation))(
+        np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix()
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    with torch.no_grad():
+        mid = silhouette_moments(mesh, camera, torch.as_tensor(rotation), torch.as_tensor(position))
+        subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation),
+                                  torch.as_tensor(sub_position.reshape(-1, 3)))
+        averaged = central_moments(_raw(subs).reshape(len(times), subframes, 6).mean(1))
+    masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage)
+    whole = np.array([m.any() and not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+                      for m in masks])
+    near = np.stack([ndimage.binary_dilation(m, iterations=int(near_px)) for m in masks])
+    observed = {"true mask": true, "mask": masks, "coverage": np.clip(np.stack(kept), 0, 1) * near}
+    fitted = {"mid": mid, "exposure": averaged}
+    out = {"frames": int(whole.sum())}
+    for label, obs in observed.items():
+        moments = mask_moments(torch.as_tensor(obs, dtype=torch.float64))
+        for kind, model in fitted.items():
+            values = channel_values(moments, model)
+            out[f"{label} - {kind}"] = {k: _stats(v.numpy()[whole]) for k, v in values.items()}
+    return out
+
+
 def main(argv: list[str]) -> None:
     if argv[:1] == ["sources"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_sources.json"
@@ -309,11 +377,11 @@ def main(argv: list[str]) -> None:
         (HERE / "results" / "diagnose_chroma.json").write_text(json.dumps(result, indent=1))
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
-                "coverage": coverage, "heldout": heldout}
+                "coverage": coverage, "heldout": heldout, "blur": blur}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage")
+    several = command in ("segmentation", "coverage", "blur")
     names = argv[2:] if several else argv[2:3]
     for name in names:
         if not (folder / name / "truth.json").exists():
