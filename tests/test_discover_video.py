@@ -630,3 +630,67 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
         assert model_a.edge == pytest.approx(model_b.edge, abs=1e-8)
     # drag and offset: 9 starts, a clock's 3, a lens's 5, each batch sharing every flight
     assert batched_flights * 2 < len(flights)
+
+
+def _ellipse_covariances(angles: np.ndarray, along: np.ndarray, across: np.ndarray) -> np.ndarray:
+    """(T, 2, 2) covariances with variance ``along`` in direction ``angles`` and ``across`` a quarter turn off."""
+    c, s = np.cos(angles), np.sin(angles)
+    rot = np.stack((np.stack((c, -s), -1), np.stack((s, c), -1)), -2)
+    return rot @ (np.eye(2) * np.stack((along, across), -1)[:, None, :]) @ np.swapaxes(rot, -1, -2)
+
+
+def test_motion_stretch_finds_an_outline_stretched_along_its_motion_with_the_speed():
+    """A round outline whose observed variance along its motion grows with the speed squared (as a
+    blurred edge read as object does) gives a positive stretch correlated with the speed squared;
+    the same stretch across the motion gives a negative one, and a stretch along a fixed image
+    axis while the motion turns does not reach the correlation that names blur (here it is most
+    along the motion at the apex, where the speed is least)."""
+    from torchfit.discover_video import BLUR_CORRELATION, motion_stretch
+
+    times = np.arange(40) / 60.0
+    # a parabola in the image: the velocity turns and its speed changes
+    centroid = np.stack((300 + 600 * times, 200 - 400 * times + 0.5 * 2400 * times**2), -1)
+    velocity = np.gradient(centroid, times, axis=0) / 60.0
+    speed, heading = np.linalg.norm(velocity, axis=1), np.arctan2(velocity[:, 1], velocity[:, 0])
+    fitted = _ellipse_covariances(heading, np.full(40, 100.0), np.full(40, 100.0))
+    used = np.ones(40, bool)
+    used[5] = False
+    along = motion_stretch(_ellipse_covariances(heading, 100 + speed**2 / 12, np.full(40, 100.0)),
+                           centroid, fitted, times, used)
+    assert along["mean"] > 0.005 and along["correlation"] > 0.99 and np.isnan(along["stretch"][5])
+    np.testing.assert_allclose(along["speed_px_per_frame"][1:-1], speed[1:-1], rtol=1e-9)
+    across = motion_stretch(_ellipse_covariances(heading, np.full(40, 100.0), 100 + speed**2 / 12),
+                            centroid, fitted, times, used)
+    assert across["mean"] < 0 and across["correlation"] < -0.99
+    fixed = motion_stretch(_ellipse_covariances(np.zeros(40), np.full(40, 110.0), np.full(40, 100.0)),
+                           centroid, fitted, times, used)
+    assert fixed["correlation"] < BLUR_CORRELATION
+
+
+def test_report_names_motion_blur_only_when_its_signature_is_there():
+    """A shape mismatch left unexplained is called motion blur in the report when it is stretched
+    along the motion and grows with the speed; otherwise it is left to the segmentation or to
+    physics outside the vocabulary; nothing left, no line."""
+    from torchfit.discover_video import _unexplained_lines
+
+    blur = {"named": True, "mean_stretch": 0.08, "correlation_with_speed_squared": 0.76,
+            "speed_px_per_frame": [6.1, 21.8]}
+    left = {"channels": ["shape"], "summary": "shape: observed longer than fitted, growing like t^2",
+            "motion_blur": blur}
+    text = _unexplained_lines(left, named=False)[0]
+    assert text.startswith("Left unexplained by the baseline: shape: observed longer")
+    assert "motion blur" in text and "4.1 %" in text and "6-22 px per frame" in text and "0.76" in text
+    other = _unexplained_lines(left | {"motion_blur": blur | {"named": False}}, named=True)[0]
+    assert other.startswith("Left unexplained by the verdict") and "It looks like motion blur" not in other
+    assert _unexplained_lines({"channels": [], "summary": "", "motion_blur": None}, named=True) == []
+
+
+def test_blur_is_named_only_for_a_stretch_that_grows_with_speed_and_moves_nothing_else():
+    from torchfit.discover_video import BLUR_CORRELATION, blur_named
+
+    assert blur_named(0.05, BLUR_CORRELATION, ["shape"]) and blur_named(0.05, 0.9, ["shape", "scale"])
+    assert not blur_named(-0.05, 0.9, ["shape"])  # shorter along the motion
+    assert not blur_named(0.05, BLUR_CORRELATION - 0.01, ["shape"])
+    assert not blur_named(0.05, float("nan"), ["shape"])
+    for other in ("centroid_x", "centroid_y", "orientation"):
+        assert not blur_named(0.05, 0.9, ["shape", other])

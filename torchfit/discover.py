@@ -583,12 +583,16 @@ def parameter_lines(verdict: Sequence[str], params: dict) -> list[str]:
     return lines
 
 
-def verdict_lines(selection: Selection, params: dict, label: str = "Verdict") -> list[str]:
-    """The verdict in words, then the named effects' parameters (:func:`parameter_lines`)."""
+def verdict_lines(selection: Selection, params: dict, label: str = "Verdict", explained: bool = True) -> list[str]:
+    """The verdict in words, then the named effects' parameters (:func:`parameter_lines`).
+    ``explained``: False when the final model still leaves a mismatch above the noise, so an
+    empty verdict does not say that nothing is missing."""
     if not selection.verdict:
         indist = [s.indistinguishable for s in selection.steps if s.indistinguishable]
         if indist:
             return [f"{label}: {' or '.join(indist[0])} — indistinguishable on this data; nothing named."]
+        if not explained:
+            return [f"{label}: no effect of the library beats the noise."]
         return [f"{label}: nothing is missing — no effect beats the noise."]
     return [f"{label}: {', then '.join(selection.verdict)}.", *parameter_lines(selection.verdict, params)]
 

@@ -10,6 +10,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
+    python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -361,6 +362,33 @@ def blur(folder: Path, near_px: str = "4") -> dict:
     return out
 
 
+def stretch(folder: Path) -> dict:
+    """The segmented masks' stretch along their own image motion against the true silhouettes at
+    the frame times (exact moments at the true poses), and its correlation with the speed squared:
+    :func:`torchfit.discover_video.motion_stretch`, what the report's motion-blur line tests on the
+    final model's silhouettes (``BLUR_CORRELATION``)."""
+    from torchfit.discover_video import BLUR_CORRELATION, motion_stretch
+    from torchfit.losses import mask_moments
+    from torchfit.render import RenderMesh, silhouette_moments
+
+    truth, shape, camera = recording_parts(folder)
+    per_frame = truth["per_frame"]
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    with torch.no_grad():
+        fitted = silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
+                                    torch.as_tensor(np.array(per_frame["position"])))
+    masks, _, _ = segment_watching(folder, "_local_contrast", lambda result: None)
+    observed = mask_moments(torch.as_tensor(masks, dtype=torch.float64))
+    whole = np.array([m.any() and not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+                      for m in masks])
+    result = motion_stretch(observed[2].numpy(), fitted[1].numpy(), fitted[2].numpy(),
+                            np.array(per_frame["time"]), whole)
+    speed = result["speed_px_per_frame"][whole]
+    return {"mean": result["mean"], "correlation": result["correlation"],
+            "named": bool(result["mean"] > 0 and result["correlation"] >= BLUR_CORRELATION),
+            "speed_px_per_frame": [float(speed.min()), float(speed.max())], "frames": int(whole.sum())}
+
+
 def main(argv: list[str]) -> None:
     if argv[:1] == ["sources"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_sources.json"
@@ -377,11 +405,11 @@ def main(argv: list[str]) -> None:
         (HERE / "results" / "diagnose_chroma.json").write_text(json.dumps(result, indent=1))
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
-                "coverage": coverage, "heldout": heldout, "blur": blur}
+                "coverage": coverage, "heldout": heldout, "blur": blur, "stretch": stretch}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage", "blur")
+    several = command in ("segmentation", "coverage", "blur", "stretch")
     names = argv[2:] if several else argv[2:3]
     for name in names:
         if not (folder / name / "truth.json").exists():
