@@ -11,11 +11,13 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
+    python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
-(``chroma``: results/diagnose_chroma.json; ``sources``: results/diagnose_sources.json, FRESH is
-the set's number, 0 for the first; it needs MuJoCo, the ``recordings`` extra).
+(``chroma``: results/diagnose_chroma.json; ``sources`` and ``stretch-sources``:
+results/diagnose_[stretch_]sources.json, FRESH is the set's number, 0 for the first; they need
+MuJoCo, the ``recordings`` extra).
 """
 
 from __future__ import annotations
@@ -362,11 +364,9 @@ def blur(folder: Path, near_px: str = "4") -> dict:
     return out
 
 
-def stretch(folder: Path) -> dict:
-    """The segmented masks' stretch along their own image motion against the true silhouettes at
-    the frame times (exact moments at the true poses), and its correlation with the speed squared:
-    :func:`torchfit.discover_video.motion_stretch`, what the report's motion-blur line tests on the
-    final model's silhouettes (``BLUR_CORRELATION``)."""
+def _stretch_row(masks: np.ndarray, folder: Path) -> dict:
+    """:func:`torchfit.discover_video.motion_stretch` of (T, H, W) bool masks of the recording in
+    ``folder`` against its true silhouettes at the frame times (exact moments at the true poses)."""
     from torchfit.discover_video import BLUR_CORRELATION, motion_stretch
     from torchfit.losses import mask_moments
     from torchfit.render import RenderMesh, silhouette_moments
@@ -377,7 +377,6 @@ def stretch(folder: Path) -> dict:
     with torch.no_grad():
         fitted = silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
                                     torch.as_tensor(np.array(per_frame["position"])))
-    masks, _, _ = segment_watching(folder, "_local_contrast", lambda result: None)
     observed = mask_moments(torch.as_tensor(masks, dtype=torch.float64))
     whole = np.array([m.any() and not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
                       for m in masks])
@@ -389,6 +388,38 @@ def stretch(folder: Path) -> dict:
             "speed_px_per_frame": [float(speed.min()), float(speed.max())], "frames": int(whole.sum())}
 
 
+def stretch(folder: Path) -> dict:
+    """The segmented masks' stretch along their own image motion against the true silhouettes,
+    and its correlation with the speed squared (:func:`_stretch_row`): what the report's
+    motion-blur line tests on the final model's silhouettes (``BLUR_CORRELATION``)."""
+    masks, _, _ = segment_watching(folder, "_local_contrast", lambda result: None)
+    return _stretch_row(masks, folder)
+
+
+def stretch_sources(fresh: int, names: list[str]) -> dict:
+    """Is the stretch motion blur? Each recording remade as recorded and without motion blur (one
+    render per frame; codec and noise unchanged, as :func:`sources`), segmented, and
+    :func:`_stretch_row` of each."""
+    import tempfile
+
+    import make_concealed as mc
+    import make_recordings as mr
+
+    import torchfit.video as video
+
+    mr.offscreen_gl()
+    specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
+    out = {}
+    for name in names:
+        for source in ("as recorded", "no motion blur"):
+            with tempfile.TemporaryDirectory() as tmp:
+                mr.make_recording(specs[name].replace(**SOURCES[source]), Path(tmp), verbose=False)
+                frames, _ = video._read_video(Path(tmp) / name / "video.mp4", 0, None)
+                row = _stretch_row(video._segment(frames, video.SegmentationSettings())["masks"], Path(tmp) / name)
+            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
+            print(fresh, name, source, f"stretch {row['mean']:+.3f} correlation {row['correlation']:+.2f}", flush=True)
+    return out
+
 def main(argv: list[str]) -> None:
     if argv[:1] == ["sources"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_sources.json"
@@ -397,6 +428,12 @@ def main(argv: list[str]) -> None:
         rows = [r for k, r in result.items() if k != "mean" and set(r) == set(SOURCES)]
         result["mean"] = _means(rows, SOURCES) | {"recordings": len(rows)}
         print(json.dumps(result["mean"], indent=1))
+        file.write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["stretch-sources"] and len(argv) > 2:
+        file = HERE / "results" / "diagnose_stretch_sources.json"
+        result = json.loads(file.read_text()) if file.exists() else {}
+        result.update(stretch_sources(int(argv[1]), argv[2:]))
         file.write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["chroma"] and len(argv) > 1:
