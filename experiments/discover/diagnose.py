@@ -12,12 +12,13 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
+    python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
 (``chroma``: results/diagnose_chroma.json; ``sources`` and ``stretch-sources``:
-results/diagnose_[stretch_]sources.json, FRESH is the set's number, 0 for the first; they need
-MuJoCo, the ``recordings`` extra).
+results/diagnose_[stretch_]sources.json; ``ramp``: results/diagnose_ramp.json. FRESH is the
+set's number, 0 for the first; these three need MuJoCo, the ``recordings`` extra).
 """
 
 from __future__ import annotations
@@ -420,6 +421,73 @@ def stretch_sources(fresh: int, names: list[str]) -> dict:
             print(fresh, name, source, f"stretch {row['mean']:+.3f} correlation {row['correlation']:+.2f}", flush=True)
     return out
 
+def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | None = None) -> dict:
+    """Why a blurred ball comes out longer along its motion: the segmentation's per-pixel coverage
+    (before smoothing and threshold) against the true coverage, the exposure's average of the
+    silhouette at the recording's own sub-frames (poses splined from the truth, rendered hard at
+    4 x 4 samples a pixel), on the blurred edge's ramp (true coverage 0.05-0.95) at the ends
+    (within about 37 degrees of the motion, seen from the centroid) and at the sides (beyond 73
+    degrees), over the faster half of the frames; and the mask's pixels there minus the true
+    coverage's at or above 0.5. The recording is remade as ``source`` (:data:`SOURCES`) and
+    segmented with the default settings changed by ``settings``."""
+    import tempfile
+
+    import make_concealed as mc
+    import make_recordings as mr
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, RotationSpline
+
+    from torchfit.render import RenderMesh, render_silhouettes
+    from torchfit.video import SegmentationSettings
+
+    mr.offscreen_gl()
+    spec = {s.name: s for s, _ in mc.concealed_specs(fresh)}[name].replace(**SOURCES[source])
+    with tempfile.TemporaryDirectory() as tmp:
+        mr.make_recording(spec, Path(tmp), verbose=False)
+        folder = Path(tmp) / name
+        truth, shape, camera = recording_parts(folder)
+        masks, estimated, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage,
+                                                  SegmentationSettings(**(settings or {})))
+    per_frame, fps = truth["per_frame"], float(truth["fps"])
+    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
+    times, position, rotation = np.array(per_frame["time"]), np.array(per_frame["position"]), np.array(per_frame["R"])
+    sub_times = times[:, None] + (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
+    sub_position = CubicSpline(times, position)(sub_times)
+    sub_rotation = RotationSpline(times, Rotation.from_matrix(rotation))(
+        np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix().reshape(*sub_times.shape, 3, 3)
+    mesh, samples = RenderMesh.from_shape(shape, torch.float64), 4
+    frames = [t for t in range(len(times)) if true[t].any()]
+    crops = []
+    for t in frames:
+        rows, cols = np.nonzero(true[t])
+        y0, x0 = rows.min() - 10, cols.min() - 10
+        h, w = rows.max() + 11 - y0, cols.max() + 11 - x0
+        window = torch.tensor([[x0 - 0.375, y0 - 0.375, 1.0 / samples]] * subframes, dtype=torch.float64)
+        with torch.no_grad():
+            hard = render_silhouettes(mesh, camera, torch.as_tensor(sub_rotation[t])[None],
+                                      torch.as_tensor(sub_position[t])[None], window[None],
+                                      size=(h * samples, w * samples), sigma=None)[0]
+        cover = hard.mean(0).reshape(h, samples, w, samples).mean((1, 3)).numpy()
+        v, u = np.mgrid[0:h, 0:w]
+        centre = np.array([(cover * u).sum(), (cover * v).sum()]) / cover.sum()
+        crops.append((cover, np.asarray(estimated[t])[y0:y0 + h, x0:x0 + w], masks[t][y0:y0 + h, x0:x0 + w],
+                      np.stack((u - centre[0], v - centre[1]), -1), centre + (x0, y0)))
+    centres = np.array([c[4] for c in crops])
+    velocity = np.gradient(centres, np.array(frames), axis=0)
+    speed = np.linalg.norm(velocity, axis=1)
+    parts = {"ends": [], "sides": []}
+    for (cover, est, mask, offset, _), v, s in zip(crops, velocity, speed):
+        if s < np.median(speed):
+            continue
+        cos = np.abs(offset @ (v / s)) / (np.linalg.norm(offset, axis=-1) + 1e-9)
+        on_ramp = (cover > 0.05) & (cover < 0.95)
+        for part, where in (("ends", cos > 0.8), ("sides", cos < 0.3)):
+            parts[part].append((float(np.mean(est[on_ramp & where] - cover[on_ramp & where])),
+                                int(np.sum(mask & where)) - int(np.sum((cover >= 0.5) & where))))
+    return {part: {"coverage_bias": float(np.mean([r[0] for r in rows])),
+                   "extra_mask_pixels_per_frame": float(np.mean([r[1] for r in rows])), "frames": len(rows)}
+            for part, rows in parts.items()}
+
 def main(argv: list[str]) -> None:
     if argv[:1] == ["sources"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_sources.json"
@@ -434,6 +502,17 @@ def main(argv: list[str]) -> None:
         file = HERE / "results" / "diagnose_stretch_sources.json"
         result = json.loads(file.read_text()) if file.exists() else {}
         result.update(stretch_sources(int(argv[1]), argv[2:]))
+        file.write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["ramp"] and len(argv) > 2:
+        file = HERE / "results" / "diagnose_ramp.json"
+        result = json.loads(file.read_text()) if file.exists() else {}
+        changes = {k: float(v) for k, v in (a.split("=") for a in argv[3:] if "=" in a)}
+        label = " ".join(f"{k}={v:g}" for k, v in changes.items())
+        for source in [a for a in argv[3:] if "=" not in a] or ["as recorded", "motion blur alone"]:
+            row = ramp(int(argv[1]), argv[2], source, changes)
+            result.setdefault(f"{argv[1]}/{argv[2]}", {})[f"{source} {label}".strip()] = row
+            print(argv[1], argv[2], source, label, json.dumps(row), flush=True)
         file.write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["chroma"] and len(argv) > 1:

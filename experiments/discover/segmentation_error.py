@@ -24,7 +24,8 @@ import torchfit.video as video
 HERE = Path(__file__).resolve().parent
 
 
-def segment_watching(folder: Path, hook: str, keep) -> tuple[np.ndarray, list, np.ndarray]:
+def segment_watching(folder: Path, hook: str, keep,
+                     settings: video.SegmentationSettings | None = None) -> tuple[np.ndarray, list, np.ndarray]:
     """Segment a concealed recording's video as torchfit does, watching one step of it.
 
     Args:
@@ -32,6 +33,7 @@ def segment_watching(folder: Path, hook: str, keep) -> tuple[np.ndarray, list, n
         hook: a function of :mod:`torchfit.video` that ``_segment`` calls once per frame
             (``_local_contrast``, ``_local_shading_coverage``).
         keep: what to keep of each call's result.
+        settings: the segmentation's settings (default: the defaults).
 
     Returns:
         (T, H, W) segmented masks, the T kept values (frame order), (T, H, W) true masks.
@@ -47,7 +49,7 @@ def segment_watching(folder: Path, hook: str, keep) -> tuple[np.ndarray, list, n
     frames, _ = video._read_video(folder / "video.mp4", 0, None)
     setattr(video, hook, recording)
     try:
-        segmented = video._segment(frames, video.SegmentationSettings())["masks"]
+        segmented = video._segment(frames, settings or video.SegmentationSettings())["masks"]
     finally:
         setattr(video, hook, original)
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
