@@ -678,10 +678,11 @@ def test_report_names_motion_blur_only_when_its_signature_is_there():
     left = {"channels": ["shape"], "summary": "shape: observed longer than fitted, growing like t^2",
             "motion_blur": blur}
     text = _unexplained_lines(left, named=False)[0]
-    assert text.startswith("Left unexplained by the baseline: shape: observed longer")
+    assert text.startswith("Left unexplained: the mismatch above (shape).")
     assert "motion blur" in text and "4.1 %" in text and "6-22 px per frame" in text and "0.76" in text
     other = _unexplained_lines(left | {"motion_blur": blur | {"named": False}}, named=True)[0]
-    assert other.startswith("Left unexplained by the verdict") and "It looks like motion blur" not in other
+    assert other.startswith("Left unexplained by the verdict: shape: observed longer")
+    assert "It looks like motion blur" not in other
     assert _unexplained_lines({"channels": [], "summary": "", "motion_blur": None}, named=True) == []
 
 

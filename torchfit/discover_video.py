@@ -984,13 +984,13 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     def as_residuals(fit_: ModelFit) -> Residuals:
         return Residuals(times, used, fit_.payload["channels"], video.noise)
 
-    located, located_after = locate(as_residuals(chain[0])), locate(as_residuals(chain[-1]))
-    unexplained = _unexplained(video, chain[-1], located_after, times, used)
+    before, after = chain[0], chain[-1]
+    located, located_after = locate(as_residuals(before)), locate(as_residuals(after))
+    unexplained = _unexplained(video, after, located_after, times, used)
     effects = {}
     for step in selection.steps:
         for name, score in step.scores.items():
             effects.setdefault(name, []).append({"base": list(step.base), **score})
-    before, after = chain[0], chain[-1]
     content = {
         "verdict": list(selection.verdict),
         "effects": effects,
@@ -1059,9 +1059,7 @@ def _unexplained(video: VideoProblem, final: ModelFit, located_after: dict, time
     read as object lengthens the outline symmetrically, so blur is not named while a centroid or
     the in-plane orientation is flagged too: a force or a turned pose is left."""
     flagged = list(located_after["flagged"])
-    out = {"channels": flagged,
-           "summary": "; ".join(part for part in located_after["summary"].split("; ")
-                                if part.split(":")[0] in flagged),
+    out = {"channels": flagged, "summary": "; ".join(located_after["channels"][c]["words"] for c in flagged),
            "motion_blur": None}
     if "shape" in flagged:
         model = final.payload["model"]
@@ -1070,10 +1068,11 @@ def _unexplained(video: VideoProblem, final: ModelFit, located_after: dict, time
             observed = _moments_at(video.edge_table, model.edge)
         stretch = motion_stretch(observed[2].cpu().numpy(), fitted[1][0].cpu().numpy(),
                                  fitted[2][0].cpu().numpy(), times, used)
-        out["motion_blur"] = {"named": blur_named(stretch["mean"], stretch["correlation"], flagged), "mean_stretch": stretch["mean"],
+        speed = stretch["speed_px_per_frame"][used]
+        out["motion_blur"] = {"named": blur_named(stretch["mean"], stretch["correlation"], flagged),
+                              "mean_stretch": stretch["mean"],
                               "correlation_with_speed_squared": stretch["correlation"],
-                              "speed_px_per_frame": [float(np.min(stretch["speed_px_per_frame"][used])),
-                                                     float(np.max(stretch["speed_px_per_frame"][used]))]}
+                              "speed_px_per_frame": [float(speed.min()), float(speed.max())]}
     return out
 
 
@@ -1087,11 +1086,15 @@ def blur_named(mean_stretch: float, correlation: float, flagged: Sequence[str]) 
 
 
 def _unexplained_lines(unexplained: dict, named: bool) -> list[str]:
-    """The report's words for :func:`_unexplained` (nothing when no channel is left flagged)."""
+    """The report's words for :func:`_unexplained` (nothing when no channel is left flagged); with
+    no effect ``named`` the mismatch is the baseline's, already worded on the report's first line."""
     if not unexplained["channels"]:
         return []
-    after = "the verdict" if named else "the baseline"
-    line = (f"Left unexplained by {after}: {unexplained['summary']}. No effect of the library accounts for it")
+    if named:
+        line = f"Left unexplained by the verdict: {unexplained['summary']}. No effect of the library accounts for it"
+    else:
+        line = (f"Left unexplained: the mismatch above ({', '.join(unexplained['channels'])}). No effect of the "
+                "library accounts for it")
     blur = unexplained["motion_blur"]
     if blur is not None and blur["named"]:
         low, high = blur["speed_px_per_frame"]

@@ -209,7 +209,7 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
         ``{"channels": {name: {...}}, "flagged": [names], "summary": "one line per finding"}``;
         per channel: ``rms``, ``noise``, ``unit``, ``significance``, ``trend`` (degree), ``growth``
         (``constant``/``linear``/``like t^2``), ``from_frame`` (first frame from which the trend
-        stays above two noise floors) and ``flagged``.
+        stays above two noise floors), ``flagged`` and, when flagged, ``words`` (its part of the summary).
     """
     idx = np.flatnonzero(residuals.used)
     t = residuals.times[idx] - residuals.times[idx[0]] if len(idx) else np.zeros(0)
@@ -232,8 +232,10 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
                          "shape": {1: "longer", -1: "shorter"},
                          "orientation": {1: "turned clockwise", -1: "turned counter-clockwise"}}[name].get(trend["sign"], "")
             start = f" from frame {onset} on" if onset is not None else ""
-            words.append(f"{name}: observed {direction} than fitted{start}, {trend['growth']}; RMS "
-                         f"{trend['rms']:.3g} {UNITS[name]} vs noise {sigma:.2g} ({trend['significance']:.0f} sigma)")
+            report[name]["words"] = (f"{name}: observed {direction} than fitted{start}, {trend['growth']}; RMS "
+                                     f"{trend['rms']:.3g} {UNITS[name]} vs noise {sigma:.2g} "
+                                     f"({trend['significance']:.0f} sigma)")
+            words.append(report[name]["words"])
     quiet = [name for name in report if name not in flagged]
     if quiet:
         words.append(f"at noise level: {', '.join(quiet)}")
