@@ -11,6 +11,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
+    python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
     python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
     python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
 
@@ -488,6 +489,24 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
                    "extra_mask_pixels_per_frame": float(np.mean([r[1] for r in rows])), "frames": len(rows)}
             for part, rows in parts.items()}
 
+def contrast(folder: Path) -> dict:
+    """Does the outline's object-background contrast flag the frames the segmentation gets wrong?
+    Per frame the contrast |F - B| (grey levels, the segmentation's own local shading fit) along the
+    true outline, summarised four ways (median, 10th percentile, share of outline pixels below 20
+    and below 30), and the correlation over the frames of the centroid error (distance from the
+    median error, px) with the inverse median, the inverse 10th percentile and the two shares."""
+    from edge_bias import outline
+
+    masks, contrasts, true = segment_watching(folder, "_local_contrast",
+                                              lambda result: np.linalg.norm(result[0], axis=-1))
+    dx, dy, _ = frame_errors(masks, true)
+    error = np.hypot(dx - np.median(dx), dy - np.median(dy))
+    rows = np.array([[np.median(v), np.percentile(v, 10), np.mean(v < 20), np.mean(v < 30)]
+                     for v in (contrasts[t][outline(true[t:t + 1])[0]] for t in range(len(true)))])
+    predictors = {"inverse_median": 1 / rows[:, 0], "inverse_p10": 1 / np.maximum(rows[:, 1], 1.0),
+                  "share_below_20": rows[:, 2], "share_below_30": rows[:, 3]}
+    return {name: float(np.corrcoef(error, value)[0, 1]) for name, value in predictors.items()}
+
 def main(argv: list[str]) -> None:
     if argv[:1] == ["sources"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_sources.json"
@@ -521,11 +540,12 @@ def main(argv: list[str]) -> None:
         (HERE / "results" / "diagnose_chroma.json").write_text(json.dumps(result, indent=1))
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
-                "coverage": coverage, "heldout": heldout, "blur": blur, "stretch": stretch}
+                "coverage": coverage, "heldout": heldout, "blur": blur, "stretch": stretch,
+                "contrast": contrast}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage", "blur", "stretch")
+    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast")
     names = argv[2:] if several else argv[2:3]
     for name in names:
         if not (folder / name / "truth.json").exists():
