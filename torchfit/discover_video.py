@@ -898,8 +898,10 @@ def motion_stretch(observed_cov: np.ndarray, fitted_centroid: np.ndarray, fitted
         ``mean`` stretch and ``correlation`` of the stretch with the speed squared over the used
         frames (NaN with fewer than 5).
     """
-    step = float(np.median(np.diff(times))) if len(times) > 1 else 1.0
-    velocity = np.gradient(fitted_centroid, times, axis=0) * step if len(times) > 1 else np.zeros_like(fitted_centroid)
+    if len(times) > 1:  # per second, then per frame interval
+        velocity = np.gradient(fitted_centroid, times, axis=0) * float(np.median(np.diff(times)))
+    else:
+        velocity = np.zeros_like(fitted_centroid)
     speed = np.linalg.norm(velocity, axis=1)
     along = velocity / np.maximum(speed, 1e-9)[:, None]
     across = np.stack((-along[:, 1], along[:, 0]), 1)

@@ -314,6 +314,31 @@ def _stats(values: np.ndarray) -> dict:
             "jitter": float(np.std(np.diff(values, 2)) / np.sqrt(6)), "slow": float(_slow(centred).std())}
 
 
+def _subframe_poses(truth: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(T, K, 3) positions and (T, K, 3, 3) rotations at a recording's K blur sub-frames (centred
+    on each frame over ``exposure_frac`` of the frame interval, as make_recordings.sample_times
+    places them), splined from truth.json's per-frame poses. The first and last frames'
+    sub-frames lie outside the frame times: the cubic extrapolates, the rotation spline cannot,
+    so the end frames' rotations are the nearest (clipped) ones."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, RotationSpline
+
+    per_frame, fps = truth["per_frame"], float(truth["fps"])
+    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
+    times = np.array(per_frame["time"])
+    sub_times = times[:, None] + (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
+    position = CubicSpline(times, np.array(per_frame["position"]))(sub_times)
+    rotation = RotationSpline(times, Rotation.from_matrix(np.array(per_frame["R"])))(
+        np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix().reshape(*sub_times.shape, 3, 3)
+    return position, rotation
+
+
+def _whole(masks: np.ndarray) -> np.ndarray:
+    """(T,) bool: the (T, H, W) masks that are non-empty and clear of the image border."""
+    return np.array([m.any() and not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+                     for m in masks])
+
+
 def blur(folder: Path, near_px: str = "4") -> dict:
     """Is the soft coverage a better observation once the model blurs too? The five channels of
     the segmented mask and of its soft coverage (the per-pixel estimate before smoothing and
@@ -324,8 +349,6 @@ def blur(folder: Path, near_px: str = "4") -> dict:
     the exposure average's moments; the 0.5 contour of a blurred silhouette has not. Per pair and
     channel: :func:`_stats` over the frames where the mask is whole."""
     from scipy import ndimage
-    from scipy.interpolate import CubicSpline
-    from scipy.spatial.transform import Rotation, RotationSpline
 
     from torchfit.losses import central_moments, mask_moments
     from torchfit.render import RenderMesh, silhouette_moments
@@ -334,26 +357,18 @@ def blur(folder: Path, near_px: str = "4") -> dict:
     truth, shape, camera = recording_parts(folder)
     if any(abs(c) > 0 for c in camera.dist_coeffs):
         raise SystemExit(f"{folder.name}: a lens recording; the exact moments here take no distortion")
-    per_frame, fps = truth["per_frame"], float(truth["fps"])
-    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
-    times, position = np.array(per_frame["time"]), np.array(per_frame["position"])
-    rotation = np.array(per_frame["R"])
-    offsets = (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
-    # the first and last frames' sub-frames lie outside the frame times: the cubic extrapolates,
-    # the rotation spline cannot, so the end frames' rotation is the nearest (clipped) one
-    sub_times = times[:, None] + offsets[None]  # (T, K)
-    sub_position = CubicSpline(times, position)(sub_times)
-    sub_rotation = RotationSpline(times, Rotation.from_matrix(rotation))(
-        np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix()
+    per_frame = truth["per_frame"]
+    sub_position, sub_rotation = _subframe_poses(truth)
+    frames, subframes = sub_position.shape[:2]
     mesh = RenderMesh.from_shape(shape, torch.float64)
     with torch.no_grad():
-        mid = silhouette_moments(mesh, camera, torch.as_tensor(rotation), torch.as_tensor(position))
-        subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation),
+        mid = silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
+                                 torch.as_tensor(np.array(per_frame["position"])))
+        subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
                                   torch.as_tensor(sub_position.reshape(-1, 3)))
-        averaged = central_moments(_raw(subs).reshape(len(times), subframes, 6).mean(1))
+        averaged = central_moments(_raw(subs).reshape(frames, subframes, 6).mean(1))
     masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage)
-    whole = np.array([m.any() and not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
-                      for m in masks])
+    whole = _whole(masks)
     near = np.stack([ndimage.binary_dilation(m, iterations=int(near_px)) for m in masks])
     observed = {"true mask": true, "mask": masks, "coverage": np.clip(np.stack(kept), 0, 1) * near}
     fitted = {"mid": mid, "exposure": averaged}
@@ -369,7 +384,7 @@ def blur(folder: Path, near_px: str = "4") -> dict:
 def _stretch_row(masks: np.ndarray, folder: Path) -> dict:
     """:func:`torchfit.discover_video.motion_stretch` of (T, H, W) bool masks of the recording in
     ``folder`` against its true silhouettes at the frame times (exact moments at the true poses)."""
-    from torchfit.discover_video import BLUR_CORRELATION, motion_stretch
+    from torchfit.discover_video import blur_named, motion_stretch
     from torchfit.losses import mask_moments
     from torchfit.render import RenderMesh, silhouette_moments
 
@@ -380,13 +395,12 @@ def _stretch_row(masks: np.ndarray, folder: Path) -> dict:
         fitted = silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
                                     torch.as_tensor(np.array(per_frame["position"])))
     observed = mask_moments(torch.as_tensor(masks, dtype=torch.float64))
-    whole = np.array([m.any() and not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
-                      for m in masks])
+    whole = _whole(masks)
     result = motion_stretch(observed[2].numpy(), fitted[1].numpy(), fitted[2].numpy(),
                             np.array(per_frame["time"]), whole)
     speed = result["speed_px_per_frame"][whole]
     return {"mean": result["mean"], "correlation": result["correlation"],
-            "named": bool(result["mean"] > 0 and result["correlation"] >= BLUR_CORRELATION),
+            "named": blur_named(result["mean"], result["correlation"], ["shape"]),
             "speed_px_per_frame": [float(speed.min()), float(speed.max())], "frames": int(whole.sum())}
 
 
@@ -435,8 +449,6 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
 
     import make_concealed as mc
     import make_recordings as mr
-    from scipy.interpolate import CubicSpline
-    from scipy.spatial.transform import Rotation, RotationSpline
 
     from torchfit.render import RenderMesh, render_silhouettes
     from torchfit.video import SegmentationSettings
@@ -449,15 +461,10 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
         truth, shape, camera = recording_parts(folder)
         masks, estimated, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage,
                                                   SegmentationSettings(**(settings or {})))
-    per_frame, fps = truth["per_frame"], float(truth["fps"])
-    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
-    times, position, rotation = np.array(per_frame["time"]), np.array(per_frame["position"]), np.array(per_frame["R"])
-    sub_times = times[:, None] + (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
-    sub_position = CubicSpline(times, position)(sub_times)
-    sub_rotation = RotationSpline(times, Rotation.from_matrix(rotation))(
-        np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix().reshape(*sub_times.shape, 3, 3)
+    sub_position, sub_rotation = _subframe_poses(truth)
+    subframes = sub_position.shape[1]
     mesh, samples = RenderMesh.from_shape(shape, torch.float64), 4
-    frames = [t for t in range(len(times)) if true[t].any()]
+    frames = [t for t in range(len(sub_position)) if true[t].any()]
     crops = []
     for t in frames:
         rows, cols = np.nonzero(true[t])
