@@ -249,3 +249,27 @@ def test_report_says_which_later_effect_carries_a_replaced_effects_parameters():
         "  quadratic_drag: in the final model its parameters are wind's",
         "  wind.drag_coefficient = 0.34 ± 0.007",
         "  magnus.lift_coefficient = 0.058 ± 0.002 (per unit spin ratio)"]
+
+
+def test_limits_line_says_unobservable_where_the_limit_is_beyond_what_the_physics_allows():
+    """A sphere's centre-of-mass offset needs hundreds of metres to show: the report says it is not
+    observable instead of quoting a size no ball can hold; a limit inside the reach is quoted, and
+    a vector with only some components beyond it says which."""
+    from torchfit.discover import Selection, Step, limits_line
+
+    def selection(offset_limit):
+        step = Step(base=(), scores={
+            "quadratic_drag": {"detectable_above": {"drag_coefficient": 1.0}},
+            "com_offset": {"detectable_above": {"offset": offset_limit}}})
+        return Selection(verdict=[], steps=[step], fits={}, noise_var=1.0)
+
+    reach = {"com_offset.offset": np.array([0.02, 0.02, 0.02])}
+    far = limits_line(selection([190.0, 23.0, 6.8]), "clip", reach=reach)
+    assert far[0] == ("What this clip cannot rule out (an effect smaller than this would not pass the criterion): "
+                      "quadratic_drag.drag_coefficient ±1.")
+    assert far[1] == ("Not observable on this clip at any size the physics allows: com_offset.offset "
+                      "(it would need ±(1.9e+02, 23, 6.8) m (body frame); the physics allows ±(0.02, 0.02, 0.02)).")
+    near = limits_line(selection([0.005, 0.03, 0.001]), "clip", reach=reach)
+    assert len(near) == 1 and ("com_offset.offset ±(0.005, 0.03, 0.001) m (body frame), along y more than the "
+                               "physics allows (none there).") in near[0]
+    assert "com_offset.offset ±(1.9e+02, 23, 6.8) m" in limits_line(selection([190.0, 23.0, 6.8]), "clip")[0]

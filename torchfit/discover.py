@@ -597,23 +597,47 @@ def verdict_lines(selection: Selection, params: dict, label: str = "Verdict", ex
     return [f"{label}: {', then '.join(selection.verdict)}.", *parameter_lines(selection.verdict, params)]
 
 
-def limits_line(selection: Selection, data: str) -> list[str]:
+def limits_line(selection: Selection, data: str, reach: dict | None = None) -> list[str]:
     """What the first round could not have seen: each unnamed parameter's size below which it
-    would not pass the criterion on this ``data`` ("clip", "tracks")."""
-    limits = []
+    would not pass the criterion on this ``data`` ("clip", "tracks").
+
+    ``reach`` optionally gives, per ``"effect.parameter"``, the largest size the physics allows
+    (a scalar, or one per component of a vector parameter, e.g. how far the body extends from its
+    centre of mass for ``com_offset.offset``). A limit beyond it is said to be unobservable instead
+    of quoted as a size no object could have.
+    """
+    reach = reach or {}
+    limits, unseen = [], []
     for name, score in (selection.steps[0].scores.items() if selection.steps else ()):
         if name in selection.verdict:
             continue
         for pname, limit in score.get("detectable_above", {}).items():
             if limit is None:
                 continue
+            key = f"{name}.{pname}"
             unit = spoken_unit(EFFECTS[name].units.get(pname, ""))
-            text = ("(" + ", ".join(f"{v:.2g}" for v in limit) + ")") if isinstance(limit, list) else f"{limit:.2g}"
-            limits.append(f"{name}.{pname} ±{text} {unit}".rstrip())
-    if not limits:
-        return []
-    return [f"What this {data} cannot rule out (an effect smaller than this would not pass the criterion): "
-            + "; ".join(limits) + "."]
+            values = np.atleast_1d(np.asarray(limit, dtype=float))
+            text = ("(" + ", ".join(f"{v:.2g}" for v in values) + ")") if isinstance(limit, list) else f"{limit:.2g}"
+            note = ""
+            allowed = reach.get(key)
+            if allowed is not None:
+                allowed = np.broadcast_to(np.asarray(allowed, dtype=float), values.shape)
+                beyond = values > allowed
+                if beyond.all():
+                    bound = ("(" + ", ".join(f"{v:.2g}" for v in allowed) + ")") if values.size > 1 else f"{allowed[0]:.2g}"
+                    unseen.append(f"{key} (it would need ±{text} {unit}; the physics allows ±{bound})".replace(" ;", ";"))
+                    continue
+                if beyond.any():
+                    axes = ", ".join("xyz"[i] if values.size == 3 else str(i) for i in np.flatnonzero(beyond))
+                    note = f", along {axes} more than the physics allows (none there)"
+            limits.append(f"{key} ±{text} {unit}".rstrip() + note)
+    lines = []
+    if limits:
+        lines.append(f"What this {data} cannot rule out (an effect smaller than this would not pass the criterion): "
+                     + "; ".join(limits) + ".")
+    if unseen:
+        lines.append(f"Not observable on this {data} at any size the physics allows: " + "; ".join(unseen) + ".")
+    return lines
 
 
 def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread: Callable[[dict], str]) -> list[str]:

@@ -1111,6 +1111,13 @@ def _unexplained_lines(unexplained: dict, named: bool) -> list[str]:
     return [line]
 
 
+def physical_reach(shape) -> dict:
+    """The largest size the physics allows, per ``"effect.parameter"`` (:func:`limits_line`'s
+    ``reach``): a centre of mass stays inside the body, so each component of ``com_offset.offset``
+    is at most how far the mesh extends from its nominal centre of mass along that axis (m, (3,))."""
+    return {"com_offset.offset": np.abs(np.asarray(shape.mesh.vertices) - np.asarray(shape.com)).max(0)}
+
+
 def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
     """Channels of the all-frame fit on the fitted frames and of the held-out prediction after them."""
     return {name: np.where(video.held, fit_.payload["held_channels"][name], fit_.payload["channels"][name])
@@ -1138,7 +1145,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     lines += verdict_lines(selection, final.params, label, explained=not left)
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
-    lines += limits_line(selection, "clip")
+    lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape))
     lines.append(f"Evidence: held-out centroid error {base.payload['heldout_centroid_px']:.2f} px -> "
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
