@@ -13,6 +13,7 @@ from torchfit.video import (
     Observation,
     SegmentationSettings,
     _segment,
+    _undistort,
     contact_sheet,
     load_observation,
     read_frames,
@@ -309,3 +310,28 @@ def test_frame_flags(tmp_path):
 def test_negative_settings_are_refused(field):
     with pytest.raises(ValueError, match=f"{field} must be >= 0, got -1.0"):
         SegmentationSettings(**{field: -1.0})
+
+
+def test_undistortion_keeps_the_outline_where_it_was():
+    """Discs drawn through a barrel lens (8x8 samples per pixel) and undistorted come back where
+    they were drawn: centroid within 0.15 px RMS (nearest-neighbour resampling: 0.19) and area
+    within 0.5 % on average."""
+    width, height, radius = 320, 240, 12.0
+    camera = Camera(fx=300.0, fy=300.0, cx=159.5, cy=119.5, width=width, height=height,
+                    dist_coeffs=(-0.3, 0.1, 0.0, 0.0))
+    sub = 8
+    v, u = np.mgrid[0:height * sub, 0:width * sub].astype(np.float64)
+    samples = np.stack([(u + 0.5) / sub - 0.5, (v + 0.5) / sub - 0.5], -1).reshape(-1, 1, 2)
+    undistorted = cv2.undistortPoints(samples, camera.K, np.asarray(camera.dist_coeffs), P=camera.K)
+    undistorted = undistorted.reshape(height, sub, width, sub, 2)
+    rng = np.random.default_rng(0)
+    centres = np.stack([rng.uniform(40, width - 40, 40), rng.uniform(40, height - 40, 40)], -1)
+    drawn = np.stack([(((undistorted - c) ** 2).sum(-1) <= radius**2).mean((1, 3)) >= 0.5 for c in centres])
+    masks = _undistort(drawn, camera)
+    errors, areas = [], []
+    for mask, centre in zip(masks, centres):
+        ys, xs = np.nonzero(mask)
+        errors.append((xs.mean() - centre[0], ys.mean() - centre[1]))
+        areas.append(mask.sum() / (np.pi * radius**2) - 1.0)
+    assert np.sqrt((np.asarray(errors) ** 2).sum(1).mean()) < 0.15
+    assert abs(np.mean(areas)) < 0.005

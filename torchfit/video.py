@@ -493,14 +493,25 @@ def _flag(masks: np.ndarray, second_frac: np.ndarray, settings: SegmentationSett
     return reasons
 
 
+# Gaussian sigma (pixels) that smooths a binary mask's staircase before it is resampled through the
+# undistortion: nearest-neighbour resampling moved each edge by up to half a pixel, coherently
+# wherever the map's fractional part drifts slowly (discs of radius 12 px through k1 -0.3, k2 0.1:
+# centroid 0.19 px RMS off against 0.12 px this way and 0.06 px drawn undistorted directly;
+# tests/test_video.py::test_undistortion_keeps_the_outline_where_it_was).
+UNDISTORT_SMOOTHING_PX = 0.7
+
+
 def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
-    """Undistort (T, H, W) masks with the camera's own K (nearest neighbour)."""
+    """Undistort (T, H, W) bool masks with the camera's own K: each mask smoothed by a Gaussian of
+    ``UNDISTORT_SMOOTHING_PX``, resampled linearly, and thresholded at 0.5 (returns (T, H, W) bool)."""
     maps = cv2.initUndistortRectifyMap(
         camera.K, np.asarray(camera.dist_coeffs, np.float64), None, camera.K,
         (camera.width, camera.height), cv2.CV_32FC1,
     )
     return np.stack([
-        cv2.remap(m.astype(np.uint8), *maps, interpolation=cv2.INTER_NEAREST) > 0 for m in masks
+        cv2.remap(cv2.GaussianBlur(m.astype(np.float32), (0, 0), UNDISTORT_SMOOTHING_PX), *maps,
+                  interpolation=cv2.INTER_LINEAR) >= 0.5
+        for m in masks
     ])
 
 
