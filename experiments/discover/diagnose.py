@@ -8,6 +8,8 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
+    python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
+    python experiments/discover/diagnose.py lens-masks DIR NAME...     # true masks against the mesh projected through the lens, ~5 s each
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
@@ -17,7 +19,7 @@ scoreboard* and *What limits the video: four checks*.
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
-(``chroma``: results/diagnose_chroma.json; ``sources`` and ``stretch-sources``:
+(``chroma``: results/diagnose_chroma.json; ``sets``: results/diagnose_sets.json; ``lens-masks``: results/diagnose_lens_masks.json; ``sources`` and ``stretch-sources``:
 results/diagnose_[stretch_]sources.json; ``ramp``: results/diagnose_ramp.json. FRESH is the
 set's number, 0 for the first; these three need MuJoCo, the ``recordings`` extra).
 """
@@ -234,8 +236,7 @@ def chroma(weights: list[str]) -> dict:
     import torchfit.video as video
 
     out = {}
-    for folder in sorted(p for name in ("recordings", "recordings_fresh1", "recordings_fresh2")
-                         for p in (HERE / name).iterdir() if (p / "truth.json").exists()):
+    for folder in _set_folders(("recordings", "recordings_fresh1", "recordings_fresh2")):
         frames, _ = video._read_video(folder / "video.mp4", 0, None)
         true = np.load(folder / "masks.npz")["masks"].astype(bool)
         for weight in weights:
@@ -245,6 +246,52 @@ def chroma(weights: list[str]) -> dict:
             print(folder.parent.name, folder.name, weight, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
     out["mean"] = _means(list(out.values()), weights)
     return out
+
+
+def _set_folders(sets) -> list[Path]:
+    """The recordings (folders with a truth.json) of the concealed ``sets`` beside this file."""
+    return sorted(p for name in sets for p in (HERE / name).iterdir() if (p / "truth.json").exists())
+
+
+def sets(names: list[str]) -> dict:
+    """Is one set's segmentation worse than another's? Each recording of the sets ``names``
+    segmented with the default settings against its true masks (:func:`_error_row`), and the
+    means per set."""
+    import torchfit.video as video
+
+    out: dict = {}
+    for folder in _set_folders(names):
+        frames, _ = video._read_video(folder / "video.mp4", 0, None)
+        true = np.load(folder / "masks.npz")["masks"].astype(bool)
+        row = _error_row(video._segment(frames, video.SegmentationSettings())["masks"], true)
+        out.setdefault(folder.parent.name, {})[folder.name] = row
+        print(folder.parent.name, folder.name, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+    for name, rows in list(out.items()):
+        out[name]["mean"] = _means([{"default": r} for r in rows.values()], ["default"])["default"]
+    return out
+
+
+def lens_masks(folder: Path) -> dict:
+    """Are a lens recording's true masks where its mesh projects through the same lens? The masks
+    against make_recordings' own rasteriser (the mesh cut into <= 5 mm triangles, each vertex
+    distorted) at the true poses: centroid error RMS and mean (px), and the edge bias's mean (px)."""
+    import make_recordings as mr
+    import trimesh
+
+    truth = json.loads((folder / "truth.json").read_text())
+    masks = np.load(folder / "masks.npz")["masks"].astype(bool)
+    cam = json.loads((folder / "camera.json").read_text())
+    lens = truth["effects"].get("lens_distortion", {})
+    distortion = (lens["k1"], lens["k2"]) if lens else None
+    mesh = trimesh.load(folder / "mesh.obj", process=False)
+    vertices, faces = (trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, 0.005) if distortion
+                       else (mesh.vertices, mesh.faces))
+    drawn = np.stack([mr.render_silhouette(np.asarray(vertices), np.asarray(faces), np.asarray(R), np.asarray(t),
+                                           cam, distortion=distortion)
+                      for R, t in zip(truth["per_frame"]["R"], truth["per_frame"]["position"])])
+    dx, dy, edge = frame_errors(drawn, masks)
+    return {"c_rms": float(np.sqrt(np.mean(dx**2 + dy**2))), "c_mean": [float(dx.mean()), float(dy.mean())],
+            "edge_mean": float(edge.mean()), "frames": len(masks)}
 
 
 SOURCES = {"as recorded": {}, "no codec": {"codec": "h264rgb", "crf": 0}, "no sensor noise": {"noise_sigma": 0.0},
@@ -545,6 +592,21 @@ def main(argv: list[str]) -> None:
         result = chroma(argv[1:])
         print(json.dumps(result["mean"], indent=1))
         (HERE / "results" / "diagnose_chroma.json").write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["sets"] and len(argv) > 1:
+        result = sets(argv[1:])
+        print(json.dumps({name: rows["mean"] for name, rows in result.items()}, indent=1))
+        (HERE / "results" / "diagnose_sets.json").write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["lens-masks"] and len(argv) > 2:
+        file = HERE / "results" / "diagnose_lens_masks.json"
+        result = json.loads(file.read_text()) if file.exists() else {}
+        for name in argv[2:]:
+            folder = Path(argv[1]) / name
+            folder = folder if folder.is_absolute() else HERE / folder
+            result[f"{argv[1]}/{name}"] = row = lens_masks(folder)
+            print(argv[1], name, json.dumps(row), flush=True)
+        file.write_text(json.dumps(result, indent=1))
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "blur": blur, "stretch": stretch,
