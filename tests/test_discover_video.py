@@ -687,11 +687,14 @@ def test_report_names_motion_blur_only_when_its_signature_is_there():
 
 
 def test_blur_is_named_only_for_a_stretch_that_grows_with_speed_and_moves_nothing_else():
-    from torchfit.discover_video import BLUR_CORRELATION, blur_named
+    from torchfit.discover_video import BLUR_CORRELATION, BLUR_SHARE, blur_named
 
-    assert blur_named(0.05, BLUR_CORRELATION, ["shape"]) and blur_named(0.05, 0.9, ["shape", "scale"])
-    assert not blur_named(-0.05, 0.9, ["shape"])  # shorter along the motion
-    assert not blur_named(0.05, BLUR_CORRELATION - 0.01, ["shape"])
-    assert not blur_named(0.05, float("nan"), ["shape"])
+    assert blur_named(0.05, BLUR_CORRELATION, ["shape"], 0.04) and blur_named(0.05, 0.9, ["shape", "scale"], 0.04)
+    assert not blur_named(-0.05, 0.9, ["shape"], 0.04)  # shorter along the motion
+    assert not blur_named(0.05, BLUR_CORRELATION - 0.01, ["shape"], 0.04)
+    assert not blur_named(0.05, float("nan"), ["shape"], 0.04)
     for other in ("centroid_x", "centroid_y", "orientation"):
-        assert not blur_named(0.05, 0.9, ["shape", other])
+        assert not blur_named(0.05, 0.9, ["shape", other], 0.04)
+    # too small a stretch for the mismatch (fresh set 3's com_tshape: 0.0085 under 0.036 RMS)
+    assert not blur_named(0.0085, 0.55, ["shape"], 0.036)
+    assert blur_named(0.05, 0.9, ["shape"], 0.025 / BLUR_SHARE) and not blur_named(0.05, 0.9, ["shape"], 0.026 / BLUR_SHARE)
