@@ -7,6 +7,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the earlier ways of computing it, ~3 min
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
+    python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT  # the held-out prediction per channel, ~2 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
     python experiments/discover/diagnose.py lens-masks DIR NAME...     # true masks against the mesh projected through the lens, ~5 s each
@@ -224,6 +225,30 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
     return {"noise_as_is": run(1.0), f"scale_noise_times_{scale_factor}": run(float(scale_factor))}
 
 
+def heldout_channels(folder: Path, effect: str) -> dict:
+    """Which channel turns a held-out test: discover's baseline and its refit with ``effect``,
+    each with its edge bias and effect value fitted on all frames and on the train frames, and
+    its held-out prediction per channel in noise floors (RMS and mean over the held-out frames)."""
+    from torchfit.residuals import CHANNELS
+
+    video = _video(folder)
+    base = video.fit((), None)
+    out = {}
+    for label, fit in (("baseline", base), (effect, video.fit((effect,), base))):
+        held = fit.payload["held_channels"]
+        out[label] = {"heldout_noise_floors": fit.heldout_rms,
+                      "edge_all_frames": [float(x) for x in fit.payload["model"].edge],
+                      "edge_train_frames": [float(x) for x in fit.payload["held_model"].edge],
+                      "value_all_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
+                                           for p, v in fit.payload["model"].values.get(effect, {}).items()},
+                      "value_train_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
+                                             for p, v in fit.payload["held_model"].values.get(effect, {}).items()},
+                      "channels": {c: {"rms": float(np.sqrt(np.nanmean((held[c][video.held] / video.noise[c]) ** 2))),
+                                       "mean": float(np.nanmean(held[c][video.held] / video.noise[c]))}
+                                   for c in CHANNELS}}
+    return out
+
+
 def _slow(values: np.ndarray, window: int = 7) -> np.ndarray:
     """(T - window + 1,) moving average of (T,) per-frame values: their slow part."""
     return np.convolve(values, np.ones(window) / window, mode="valid")
@@ -434,6 +459,7 @@ def _stretch_row(masks: np.ndarray, folder: Path) -> dict:
     from torchfit.discover_video import blur_named, motion_stretch
     from torchfit.losses import mask_moments
     from torchfit.render import RenderMesh, silhouette_moments
+    from torchfit.residuals import channel_values
 
     truth, shape, camera = recording_parts(folder)
     per_frame = truth["per_frame"]
@@ -446,8 +472,10 @@ def _stretch_row(masks: np.ndarray, folder: Path) -> dict:
     result = motion_stretch(observed[2].numpy(), fitted[1].numpy(), fitted[2].numpy(),
                             np.array(per_frame["time"]), whole)
     speed = result["speed_px_per_frame"][whole]
-    return {"mean": result["mean"], "correlation": result["correlation"],
-            "named": blur_named(result["mean"], result["correlation"], ["shape"]),
+    shape = channel_values(observed, fitted)["shape"].numpy()[whole]
+    shape_rms = float(np.sqrt(np.mean((shape - shape.mean()) ** 2)))  # the edge nuisance takes the mean
+    return {"mean": result["mean"], "correlation": result["correlation"], "shape_rms": shape_rms,
+            "named": blur_named(result["mean"], result["correlation"], ["shape"], shape_rms),
             "speed_px_per_frame": [float(speed.min()), float(speed.max())], "frames": int(whole.sum())}
 
 
@@ -609,7 +637,7 @@ def main(argv: list[str]) -> None:
         file.write_text(json.dumps(result, indent=1))
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
-                "coverage": coverage, "heldout": heldout, "blur": blur, "stretch": stretch,
+                "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels, "blur": blur, "stretch": stretch,
                 "contrast": contrast}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
