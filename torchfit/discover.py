@@ -597,6 +597,11 @@ def verdict_lines(selection: Selection, params: dict, label: str = "Verdict", ex
     return [f"{label}: {', then '.join(selection.verdict)}.", *parameter_lines(selection.verdict, params)]
 
 
+def _size_text(values: np.ndarray, vector: bool) -> str:
+    """A detection limit or a bound as the report prints it: ``(a, b, c)`` or ``a``, 2 digits."""
+    return "(" + ", ".join(f"{v:.2g}" for v in values) + ")" if vector else f"{values[0]:.2g}"
+
+
 def limits_line(selection: Selection, data: str, reach: dict | None = None) -> list[str]:
     """What the first round could not have seen: each unnamed parameter's size below which it
     would not pass the criterion on this ``data`` ("clip", "tracks").
@@ -616,16 +621,16 @@ def limits_line(selection: Selection, data: str, reach: dict | None = None) -> l
                 continue
             key = f"{name}.{pname}"
             unit = spoken_unit(EFFECTS[name].units.get(pname, ""))
-            values = np.atleast_1d(np.asarray(limit, dtype=float))
-            text = ("(" + ", ".join(f"{v:.2g}" for v in values) + ")") if isinstance(limit, list) else f"{limit:.2g}"
+            values, vector = np.atleast_1d(np.asarray(limit, dtype=float)), isinstance(limit, list)
+            text = _size_text(values, vector)
             note = ""
             allowed = reach.get(key)
             if allowed is not None:
                 allowed = np.broadcast_to(np.asarray(allowed, dtype=float), values.shape)
                 beyond = values > allowed
                 if beyond.all():
-                    bound = ("(" + ", ".join(f"{v:.2g}" for v in allowed) + ")") if values.size > 1 else f"{allowed[0]:.2g}"
-                    unseen.append(f"{key} (it would need ±{text} {unit}; the physics allows ±{bound})".replace(" ;", ";"))
+                    unseen.append(f"{key} (it would need ±{text} {unit}; the physics allows ±{_size_text(allowed, vector)})"
+                                  .replace(" ;", ";"))
                     continue
                 if beyond.any():
                     axes = ", ".join("xyz"[i] if values.size == 3 else str(i) for i in np.flatnonzero(beyond))
