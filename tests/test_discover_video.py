@@ -698,3 +698,19 @@ def test_blur_is_named_only_for_a_stretch_that_grows_with_speed_and_moves_nothin
     # too small a stretch for the mismatch (fresh set 3's com_tshape: 0.0085 under 0.036 RMS)
     assert not blur_named(0.0085, 0.55, ["shape"], 0.036)
     assert blur_named(0.05, 0.9, ["shape"], 0.025 / BLUR_SHARE) and not blur_named(0.05, 0.9, ["shape"], 0.026 / BLUR_SHARE)
+
+
+def test_report_locates_a_size_mismatch_the_edge_bias_took():
+    """A baseline edge bias beyond EDGE_LOCATE_PRIORS priors is a size mismatch (a wrong clock
+    scales the depth): the report says so, with the sign's meaning and where a named effect took
+    the edge bias; within it, nothing is said."""
+    from torchfit.discover_video import EDGE_LOCATE_PRIORS, EDGE_PRIOR_PX, size_mismatch, size_mismatch_lines
+
+    assert size_mismatch({"value": 0.9 * EDGE_LOCATE_PRIORS * EDGE_PRIOR_PX, "std": 0.04}, {"value": 0.0}) is None
+    clock = size_mismatch({"value": -0.92, "std": 0.045}, {"value": 0.05})
+    assert clock["priors"] == pytest.approx(0.92 / EDGE_PRIOR_PX) and clock["final_edge_px"] == 0.05
+    line = size_mismatch_lines(clock, ["time_scale"])[0]
+    assert line.startswith("Size: the baseline fits the outlines only with an edge bias of -0.92 ± 0.04 px, 6.1 times")
+    assert "smaller than the depth" in line and line.endswith("With time_scale the edge bias is +0.05 px.")
+    assert "larger than the depth" in size_mismatch_lines(size_mismatch({"value": 0.6, "std": 0.05}, {"value": 0.6}), [])[0]
+    assert size_mismatch_lines(None, []) == []
