@@ -622,9 +622,10 @@ def main(argv: list[str]) -> None:
         (HERE / "results" / "diagnose_chroma.json").write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["sets"] and len(argv) > 1:
-        result = sets(argv[1:])
+        file = HERE / "results" / "diagnose_sets.json"  # the sets named replace their own entries
+        result = (json.loads(file.read_text()) if file.exists() else {}) | sets(argv[1:])
         print(json.dumps({name: rows["mean"] for name, rows in result.items()}, indent=1))
-        (HERE / "results" / "diagnose_sets.json").write_text(json.dumps(result, indent=1))
+        file.write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["lens-masks"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_lens_masks.json"
