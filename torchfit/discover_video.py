@@ -1047,7 +1047,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         content["verdict_withheld"], content["verdict"] = content["verdict"], []
     content["report"] = report = _report_lines(selection, chain, located, video,
                                                content["iou_final"]["mean_fitted"] if withheld else None,
-                                               None if withheld else unexplained)
+                                               None if withheld else unexplained, content["size_mismatch"])
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)
@@ -1172,14 +1172,15 @@ def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
-                  unexplained: dict | None = None) -> list[str]:
+                  unexplained: dict | None = None, mismatch: dict | None = None) -> list[str]:
     """A report a person reads in a minute (``withheld_iou``: the final model's mean IoU when the
-    verdict is withheld for it; ``unexplained``: what the final model leaves, :func:`_unexplained`).
+    verdict is withheld for it; ``unexplained``: what the final model leaves, :func:`_unexplained`;
+    ``mismatch``: the size mismatch the edge nuisance took, :func:`size_mismatch`).
     Every candidate that lowers the BIC by more than the threshold and is not named gets a line
     saying which test it failed."""
     base, final = chain[0], chain[-1]
     lines = [f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}."]
-    lines += size_mismatch_lines(size_mismatch(base.payload["edge_px"], final.payload["edge_px"]), selection.verdict)
+    lines += size_mismatch_lines(mismatch, selection.verdict)
     if withheld_iou is not None:
         lines.append(f"Verdict withheld: even with {', '.join(selection.verdict)} the fit explains the silhouettes "
                      f"poorly (mean IoU {withheld_iou:.3f} < {MIN_IOU}) — the search may have found a wrong pose, or "
