@@ -622,20 +622,19 @@ def limits_line(selection: Selection, data: str, reach: dict | None = None) -> l
             key = f"{name}.{pname}"
             unit = spoken_unit(EFFECTS[name].units.get(pname, ""))
             values, vector = np.atleast_1d(np.asarray(limit, dtype=float)), isinstance(limit, list)
-            text = _size_text(values, vector)
+            needed = f"±{_size_text(values, vector)} {unit}".rstrip()
             note = ""
             allowed = reach.get(key)
             if allowed is not None:
                 allowed = np.broadcast_to(np.asarray(allowed, dtype=float), values.shape)
                 beyond = values > allowed
                 if beyond.all():
-                    unseen.append(f"{key} (it would need ±{text} {unit}; the physics allows ±{_size_text(allowed, vector)})"
-                                  .replace(" ;", ";"))
+                    unseen.append(f"{key} (it would need {needed}; the physics allows ±{_size_text(allowed, vector)})")
                     continue
                 if beyond.any():
                     axes = ", ".join("xyz"[i] if values.size == 3 else str(i) for i in np.flatnonzero(beyond))
                     note = f", along {axes} more than the physics allows (none there)"
-            limits.append(f"{key} ±{text} {unit}".rstrip() + note)
+            limits.append(f"{key} {needed}{note}")
     lines = []
     if limits:
         lines.append(f"What this {data} cannot rule out (an effect smaller than this would not pass the criterion): "

@@ -273,6 +273,15 @@ def chroma(weights: list[str]) -> dict:
     return out
 
 
+def _segmented_and_true(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(T, H, W) bool: a recording's video segmented with the default settings, and its true masks."""
+    import torchfit.video as video
+
+    frames, _ = video._read_video(folder / "video.mp4", 0, None)
+    return (video._segment(frames, video.SegmentationSettings())["masks"],
+            np.load(folder / "masks.npz")["masks"].astype(bool))
+
+
 def _set_folders(sets) -> list[Path]:
     """The recordings (folders with a truth.json) of the concealed ``sets`` beside this file."""
     return sorted(p for name in sets for p in (HERE / name).iterdir() if (p / "truth.json").exists())
@@ -282,13 +291,9 @@ def sets(names: list[str]) -> dict:
     """Is one set's segmentation worse than another's? Each recording of the sets ``names``
     segmented with the default settings against its true masks (:func:`_error_row`), and the
     means per set."""
-    import torchfit.video as video
-
     out: dict = {}
     for folder in _set_folders(names):
-        frames, _ = video._read_video(folder / "video.mp4", 0, None)
-        true = np.load(folder / "masks.npz")["masks"].astype(bool)
-        row = _error_row(video._segment(frames, video.SegmentationSettings())["masks"], true)
+        row = _error_row(*_segmented_and_true(folder))
         out.setdefault(folder.parent.name, {})[folder.name] = row
         print(folder.parent.name, folder.name, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
     for name, rows in list(out.items()):
@@ -354,8 +359,6 @@ def sources(fresh: int, names: list[str]) -> dict:
     import make_concealed as mc
     import make_recordings as mr
 
-    import torchfit.video as video
-
     mr.offscreen_gl()
     specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
     out = {}
@@ -363,9 +366,7 @@ def sources(fresh: int, names: list[str]) -> dict:
         for source, change in SOURCES.items():
             with tempfile.TemporaryDirectory() as tmp:
                 mr.make_recording(specs[name].replace(**change), Path(tmp), verbose=False)
-                frames, _ = video._read_video(Path(tmp) / name / "video.mp4", 0, None)
-                masks = video._segment(frames, video.SegmentationSettings())["masks"]
-                row = _error_row(masks, np.load(Path(tmp) / name / "masks.npz")["masks"].astype(bool))
+                row = _error_row(*_segmented_and_true(Path(tmp) / name))
             out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
             print(fresh, name, source, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
     return out
@@ -496,8 +497,6 @@ def stretch_sources(fresh: int, names: list[str]) -> dict:
     import make_concealed as mc
     import make_recordings as mr
 
-    import torchfit.video as video
-
     mr.offscreen_gl()
     specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
     out = {}
@@ -505,8 +504,7 @@ def stretch_sources(fresh: int, names: list[str]) -> dict:
         for source in ("as recorded", "no motion blur"):
             with tempfile.TemporaryDirectory() as tmp:
                 mr.make_recording(specs[name].replace(**SOURCES[source]), Path(tmp), verbose=False)
-                frames, _ = video._read_video(Path(tmp) / name / "video.mp4", 0, None)
-                row = _stretch_row(video._segment(frames, video.SegmentationSettings())["masks"], Path(tmp) / name)
+                row = _stretch_row(_segmented_and_true(Path(tmp) / name)[0], Path(tmp) / name)
             out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
             print(fresh, name, source, f"stretch {row['mean']:+.3f} correlation {row['correlation']:+.2f}", flush=True)
     return out
