@@ -152,6 +152,34 @@ def test_sharp_set_changes_only_the_motion_blur(mods):
     assert mc.fresh_folder(2, sharp=True).name == "recordings_fresh2_sharp"
 
 
+def test_crf_set_folders(mods):
+    """--crf C: the set at another H.264 quality, in its own folder beside the set."""
+    _, mc = mods
+    assert mc.fresh_folder(0, crf=4).name == "recordings_crf4"
+    assert mc.fresh_folder(3, crf=20).name == "recordings_fresh3_crf20"
+
+
+@pytest.mark.parametrize("codec, full_colour", [("h264_444", True), ("h264", False)])
+def test_h264_444_keeps_colour_at_full_resolution(mods, tmp_path, codec, full_colour):
+    """A one-pixel red column on grey, lossless (crf 0): yuv444p gives it back, yuv420p halves
+    its colour's resolution (what diagnose.py codec separates from the quantisation)."""
+    mr, _ = mods
+    pytest.importorskip("av")
+    import cv2
+
+    frame = np.full((64, 64, 3), 128, np.uint8)
+    frame[:, 31] = (200, 40, 40)
+    spec = mr.RecordingSpec(name="stripe", codec=codec, crf=0)
+    writer = mr.VideoWriter(tmp_path / "v.mp4", spec, 64, 64)
+    for _ in range(3):
+        writer.write(frame)
+    writer.release()
+    ok, bgr = cv2.VideoCapture(str(tmp_path / "v.mp4")).read()
+    assert ok
+    error = np.abs(bgr[:, :, ::-1].astype(int) - frame.astype(int))[8:-8, 28:35].max()
+    assert (error <= 3) == full_colour, error
+
+
 def test_summary_merge_keeps_rows_not_remade(mods):
     _, mc = mods
     kept = [{"name": "control_ball", "v": 1}, {"name": "drag_ball", "v": 1}]

@@ -492,10 +492,12 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
-         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False) -> None:
+         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
+         crf: int | None = None) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
-    if sharp:  # the same set without motion blur (make_concealed.py --sharp)
-        recordings = recordings.with_name(recordings.name + "_sharp")
+    variant = ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
+    # the same set without motion blur or at another H.264 quality (make_concealed.py --sharp, --crf)
+    recordings = recordings.with_name(recordings.name + variant)
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
         out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"])
@@ -505,7 +507,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + "".join(f"_with_{name}" for name in extra)
-                            + edge_suffix(edge_px) + ("_sharp" if sharp else ""))
+                            + edge_suffix(edge_px) + variant)
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -516,7 +518,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     elif not recordings.exists():
         sys.exit(f"no recordings in {recordings}: run python experiments/discover/make_concealed.py"
                  + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else "")
-                 + (" --sharp" if sharp else ""))
+                 + (" --sharp" if sharp else "") + (f" --crf {crf}" if crf is not None else ""))
     else:
         folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
@@ -541,6 +543,8 @@ if __name__ == "__main__":
                          "(results/rolling_shutter[_true_masks]/)")
     ap.add_argument("--sharp", action="store_true",
                     help="the set remade without motion blur (make_concealed.py --sharp; results/..._sharp/)")
+    ap.add_argument("--crf", type=int, default=None, metavar="C",
+                    help="the set encoded at H.264 quality C (make_concealed.py --crf C; results/..._crf<C>/)")
     ap.add_argument("--with", dest="extra", action="append", default=[], choices=sorted(set(VIDEO_EFFECTS) - set(CANDIDATES)),
                     help="one more candidate besides the defaults (repeatable; results/concealed..._with_<name>/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
@@ -551,7 +555,8 @@ if __name__ == "__main__":
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md); "
                          "with --chroma-weight W the segmented sets at the default weight and at W side by side "
-                         "(results/chroma<W>_side_by_side.md), with --with NAME the sets with and without that "
+                         "(results/chroma<W>_side_by_side.md), with --crf C the segmented sets at crf 14 and at C "
+                         "(results/crf<C>_side_by_side.md), with --with NAME the sets with and without that "
                          "candidate (results/with_<NAME>_side_by_side.md), with --edge-px E the exact masks' sets "
                          "at the default edge term and at E (results/edge<E>_side_by_side.md)")
     ap.add_argument("--rules", action="store_true",
@@ -563,8 +568,12 @@ if __name__ == "__main__":
         sys.exit(print(text))
     if not (args.edge_px >= 0):
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
-    if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX):
-        if args.chroma_weight is not None:
+    if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
+                            or args.crf is not None):
+        if args.crf is not None:
+            suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
+            text = side_by_side(suffix, label, column="H.264 quality")
+        elif args.chroma_weight is not None:
             suffix, label = f"_chroma{args.chroma_weight:g}", f"chroma {args.chroma_weight:g}"
             text = side_by_side(suffix, label, column="segmentation")
         elif args.edge_px != EDGE_PX:
@@ -590,7 +599,9 @@ if __name__ == "__main__":
         ap.error("--shutter is its own set: not with --fresh, --shipped or --chroma-weight")
     if args.sharp and (args.shutter or args.shipped):
         ap.error("--sharp is a concealed set without motion blur: not with --shutter or --shipped")
+    if args.crf is not None and (args.shutter or args.shipped or args.sharp):
+        ap.error("--crf is a concealed set at another H.264 quality: not with --shutter, --shipped or --sharp")
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter, tuple(args.extra), args.edge_px, args.sharp)
+         args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf)

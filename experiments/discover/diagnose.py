@@ -17,12 +17,14 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
     python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
     python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
+    python experiments/discover/diagnose.py codec FRESH NAME...        # remade with other H.264 encodings (CODECS), ~2 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
 (``chroma``: results/diagnose_chroma.json; ``sets``: results/diagnose_sets.json; ``lens-masks``: results/diagnose_lens_masks.json; ``sources`` and ``stretch-sources``:
-results/diagnose_[stretch_]sources.json; ``ramp``: results/diagnose_ramp.json. FRESH is the
-set's number, 0 for the first; these three need MuJoCo, the ``recordings`` extra).
+results/diagnose_[stretch_]sources.json; ``ramp``: results/diagnose_ramp.json; ``codec``:
+results/diagnose_codec.json. FRESH is the set's number, 0 for the first; these four need MuJoCo,
+the ``recordings`` extra).
 """
 
 from __future__ import annotations
@@ -372,6 +374,39 @@ def sources(fresh: int, names: list[str]) -> dict:
     return out
 
 
+# The H.264 encoding's two losses apart, and its quality: libx264 at crf 0 on yuv420p is lossless but
+# for the colour's half resolution (4:2:0); yuv444p at crf 14 keeps full-resolution colour and
+# quantises as the recordings do.
+CODECS = {"as recorded (crf 14, 4:2:0)": {}, "4:2:0 alone (crf 0)": {"crf": 0},
+          "quantisation alone (crf 14, 4:4:4)": {"codec": "h264_444"},
+          "no codec": SOURCES["no codec"], **{f"crf {c}": {"crf": c} for c in (4, 8, 20, 26)}}
+
+
+def codec(fresh: int, names: list[str]) -> dict:
+    """Which part of the H.264 encoding makes the segmentation err, and how its quality does: each
+    recording remade (same throw, scene and seeds) with the encodings of :data:`CODECS` and
+    segmented with the default settings (:func:`_error_row`, plus the file's bits per pixel)."""
+    import tempfile
+
+    import make_concealed as mc
+    import make_recordings as mr
+
+    mr.offscreen_gl()
+    specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
+    out = {}
+    for name in names:
+        for label, change in CODECS.items():
+            with tempfile.TemporaryDirectory() as tmp:
+                spec = specs[name].replace(**change)
+                mr.make_recording(spec, Path(tmp), verbose=False)
+                row = _error_row(*_segmented_and_true(Path(tmp) / name))
+                pixels = spec.width * spec.height * spec.n_frames
+                row["bits_per_pixel"] = 8 * (Path(tmp) / name / "video.mp4").stat().st_size / pixels
+            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[label] = row
+            print(fresh, name, label, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+    return out
+
+
 def _raw(moments: tuple) -> torch.Tensor:
     """(N, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` from (area, centroid, covariance)."""
     area, (cu, cv), cov = moments[0], moments[1].unbind(-1), moments[2]
@@ -594,6 +629,17 @@ def main(argv: list[str]) -> None:
         result.update(sources(int(argv[1]), argv[2:]))
         rows = [r for k, r in result.items() if k != "mean" and set(r) == set(SOURCES)]
         result["mean"] = _means(rows, SOURCES) | {"recordings": len(rows)}
+        print(json.dumps(result["mean"], indent=1))
+        file.write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["codec"] and len(argv) > 2:
+        file = HERE / "results" / "diagnose_codec.json"
+        result = json.loads(file.read_text()) if file.exists() else {}
+        result.update(codec(int(argv[1]), argv[2:]))
+        rows = [r for k, r in result.items() if k != "mean" and set(r) == set(CODECS)]
+        result["mean"] = {c: {k: float(np.mean([r[c][k] for r in rows])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow",
+                                                                                    "bits_per_pixel")}
+                          for c in CODECS} | {"recordings": len(rows)}
         print(json.dumps(result["mean"], indent=1))
         file.write_text(json.dumps(result, indent=1))
         return

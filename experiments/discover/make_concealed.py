@@ -18,7 +18,9 @@ Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), `
 (a fresh set from the same recipes: other seeds and background scene K, in recordings_fresh<K>/),
 ``--shutter`` (the four controls' throws through a rolling shutter, and the controls, in
 recordings_shutter/: ``shutter_specs``), ``--sharp`` (the set without motion blur: one render per frame
-at its time, in recordings[_fresh<K>]_sharp/; everything else as in the set).
+at its time, in recordings[_fresh<K>]_sharp/; everything else as in the set), ``--crf C`` (the set
+encoded at H.264 quality C instead of 14, in recordings[_fresh<K>]_crf<C>/: how the compression
+moves the verdicts).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -228,6 +230,8 @@ def main(argv=None) -> int:
                     help="the rolling-shutter set (shutter_specs) in recordings_shutter/")
     ap.add_argument("--sharp", action="store_true",
                     help="without motion blur (one render per frame), in recordings[_fresh<K>]_sharp/")
+    ap.add_argument("--crf", type=int, default=None, metavar="C",
+                    help="H.264 constant rate factor C (0-51) instead of 14, in recordings[_fresh<K>]_crf<C>/")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -237,7 +241,11 @@ def main(argv=None) -> int:
         raise SystemExit(f"--fresh must be >= 0, got {args.fresh}")
     if args.sharp and args.shutter:
         raise SystemExit("--sharp is a concealed set without motion blur: not with --shutter")
+    if args.crf is not None and (args.shutter or args.sharp or not 0 <= args.crf <= 51):
+        raise SystemExit(f"--crf needs an H.264 quality 0-51 (not with --shutter or --sharp), got {args.crf}")
     specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)
+    if args.crf is not None:
+        specs = [(s.replace(crf=args.crf), what) for s, what in specs]
     if args.sharp:
         specs = [(sharp_spec(s), what) for s, what in specs]
     if args.list:
@@ -250,7 +258,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp))
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)
@@ -279,10 +287,11 @@ def main(argv=None) -> int:
     return 0
 
 
-def fresh_folder(fresh: int, sharp: bool = False) -> Path:
-    """Where set ``fresh`` lives by default (0: the first set; ``sharp``: its copy without motion blur)."""
+def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None) -> Path:
+    """Where set ``fresh`` lives by default (0: the first set; ``sharp``: its copy without motion blur;
+    ``crf``: its copy encoded at that H.264 quality)."""
     folder = DEFAULT_OUT.with_name(f"recordings_fresh{fresh}") if fresh else DEFAULT_OUT
-    return folder.with_name(folder.name + "_sharp") if sharp else folder
+    return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else ""))
 
 
 def sharp_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:

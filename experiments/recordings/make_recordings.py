@@ -108,7 +108,8 @@ class RecordingSpec:
     blur_subframes: int = 5  # renders averaged per frame (1 = no blur)
     exposure: float = 0.5  # exposure time as a fraction of the frame interval
     noise_sigma: float = 3.0 / 255.0  # Gaussian sensor noise, in [0, 1] units
-    codec: str = "h264"  # "h264" (libx264 through PyAV, yuv420p like a phone), "h264rgb" or an OpenCV fourcc
+    codec: str = "h264"  # "h264" (libx264 through PyAV, yuv420p like a phone), "h264_444" (yuv444p: colour
+    # at full resolution), "h264rgb" or an OpenCV fourcc
     crf: int = 14  # H.264 constant rate factor (lower = better; phones record at roughly 14-20)
     shadows: bool = False
     scene_seed: int = 0  # background texture
@@ -792,9 +793,11 @@ def sample_ic(spec: RecordingSpec, scene: Scene, rng: np.random.Generator):
 
 class VideoWriter:
     """Writes RGB uint8 frames: H.264 through PyAV (``codec="h264"``: libx264, yuv420p like a phone;
-    ``"h264rgb"``: libx264rgb on the RGB frames, lossless at crf 0) or any OpenCV fourcc."""
+    ``"h264_444"``: libx264 with colour at full resolution; ``"h264rgb"``: libx264rgb on the RGB
+    frames, lossless at crf 0) or any OpenCV fourcc."""
 
-    H264 = {"h264": ("libx264", "yuv420p", "slow"), "h264rgb": ("libx264rgb", "rgb24", "ultrafast")}
+    H264 = {"h264": ("libx264", "yuv420p", "slow"), "h264_444": ("libx264", "yuv444p", "slow"),
+            "h264rgb": ("libx264rgb", "rgb24", "ultrafast")}
 
     def __init__(self, path: Path, spec: RecordingSpec, width: int, height: int):
         self.container = self.stream = self.cv_writer = None
