@@ -350,12 +350,10 @@ def _means(rows: list[dict], columns) -> dict:
             for c in columns}
 
 
-def sources(fresh: int, names: list[str]) -> dict:
-    """Which part of the recording makes the segmentation err: each concealed recording remade
-    (same throw, scene and seeds, in a temporary folder) without H.264 (lossless RGB instead:
-    libx264rgb, crf 0), without sensor noise, without motion blur (one render per frame at the
-    frame's time), with motion blur alone (neither codec nor noise) and without all three, and
-    segmented with the default settings (:func:`_error_row`)."""
+def _remade(fresh: int, names: list[str], changes: dict, bits_per_pixel: bool = False) -> dict:
+    """Each concealed recording of set ``fresh`` remade (same throw, scene and seeds, in a temporary
+    folder) with each ``{label: RecordingSpec changes}`` and segmented with the default settings
+    against its true masks (:func:`_error_row`; with ``bits_per_pixel``, also the video's size)."""
     import tempfile
 
     import make_concealed as mc
@@ -365,13 +363,25 @@ def sources(fresh: int, names: list[str]) -> dict:
     specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
     out = {}
     for name in names:
-        for source, change in SOURCES.items():
+        for label, change in changes.items():
             with tempfile.TemporaryDirectory() as tmp:
-                mr.make_recording(specs[name].replace(**change), Path(tmp), verbose=False)
+                spec = specs[name].replace(**change)
+                mr.make_recording(spec, Path(tmp), verbose=False)
                 row = _error_row(*_segmented_and_true(Path(tmp) / name))
-            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
-            print(fresh, name, source, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+                if bits_per_pixel:
+                    pixels = spec.width * spec.height * spec.n_frames
+                    row["bits_per_pixel"] = 8 * (Path(tmp) / name / "video.mp4").stat().st_size / pixels
+            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[label] = row
+            print(fresh, name, label, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
     return out
+
+
+def sources(fresh: int, names: list[str]) -> dict:
+    """Which part of the recording makes the segmentation err: each concealed recording remade
+    without H.264 (lossless RGB instead: libx264rgb, crf 0), without sensor noise, without motion
+    blur (one render per frame at the frame's time), with motion blur alone (neither codec nor
+    noise) and without all three (:func:`_remade`)."""
+    return _remade(fresh, names, SOURCES)
 
 
 # The H.264 encoding's two losses apart, and its quality: libx264 at crf 0 on yuv420p is lossless but
@@ -384,27 +394,8 @@ CODECS = {"as recorded (crf 14, 4:2:0)": {}, "4:2:0 alone (crf 0)": {"crf": 0},
 
 def codec(fresh: int, names: list[str]) -> dict:
     """Which part of the H.264 encoding makes the segmentation err, and how its quality does: each
-    recording remade (same throw, scene and seeds) with the encodings of :data:`CODECS` and
-    segmented with the default settings (:func:`_error_row`, plus the file's bits per pixel)."""
-    import tempfile
-
-    import make_concealed as mc
-    import make_recordings as mr
-
-    mr.offscreen_gl()
-    specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
-    out = {}
-    for name in names:
-        for label, change in CODECS.items():
-            with tempfile.TemporaryDirectory() as tmp:
-                spec = specs[name].replace(**change)
-                mr.make_recording(spec, Path(tmp), verbose=False)
-                row = _error_row(*_segmented_and_true(Path(tmp) / name))
-                pixels = spec.width * spec.height * spec.n_frames
-                row["bits_per_pixel"] = 8 * (Path(tmp) / name / "video.mp4").stat().st_size / pixels
-            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[label] = row
-            print(fresh, name, label, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
-    return out
+    recording remade with the encodings of :data:`CODECS` (:func:`_remade`, with bits per pixel)."""
+    return _remade(fresh, names, CODECS, bits_per_pixel=True)
 
 
 def _raw(moments: tuple) -> torch.Tensor:
