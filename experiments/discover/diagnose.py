@@ -343,17 +343,20 @@ def _error_row(masks: np.ndarray, true: np.ndarray) -> dict:
             "edge_mean": float(edge.mean()), "edge_sd": float(edge.std()), "edge_slow": float(_slow(edge).std())}
 
 
-def _means(rows: list[dict], columns) -> dict:
+ERROR_KEYS = ("c_rms", "c_slow", "edge_sd", "edge_slow")
+
+
+def _means(rows: list[dict], columns, keys=ERROR_KEYS) -> dict:
     """Per column (a chroma weight, a source) the mean over ``rows`` (each ``{column: _error_row}``)
-    of each error but the edge bias's mean, which the edge nuisance takes up."""
-    return {c: {k: float(np.mean([r[c][k] for r in rows])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow")}
-            for c in columns}
+    of each of ``keys``: by default each error but the edge bias's mean, which the edge nuisance
+    takes up."""
+    return {c: {k: float(np.mean([r[c][k] for r in rows])) for k in keys} for c in columns}
 
 
-def _remade(fresh: int, names: list[str], changes: dict, bits_per_pixel: bool = False) -> dict:
+def _remade(fresh: int, names: list[str], changes: dict, row) -> dict:
     """Each concealed recording of set ``fresh`` remade (same throw, scene and seeds, in a temporary
-    folder) with each ``{label: RecordingSpec changes}`` and segmented with the default settings
-    against its true masks (:func:`_error_row`; with ``bits_per_pixel``, also the video's size)."""
+    folder) with each ``{label: RecordingSpec changes}``, and ``row(spec, folder)`` of each remake
+    (a dict of figures)."""
     import tempfile
 
     import make_concealed as mc
@@ -367,21 +370,30 @@ def _remade(fresh: int, names: list[str], changes: dict, bits_per_pixel: bool = 
             with tempfile.TemporaryDirectory() as tmp:
                 spec = specs[name].replace(**change)
                 mr.make_recording(spec, Path(tmp), verbose=False)
-                row = _error_row(*_segmented_and_true(Path(tmp) / name))
-                if bits_per_pixel:
-                    pixels = spec.width * spec.height * spec.n_frames
-                    row["bits_per_pixel"] = 8 * (Path(tmp) / name / "video.mp4").stat().st_size / pixels
-            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[label] = row
-            print(fresh, name, label, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+                figures = row(spec, Path(tmp) / name)
+            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[label] = figures
+            print(fresh, name, label, " ".join(f"{k} {v:.3f}" for k, v in figures.items() if isinstance(v, float)),
+                  flush=True)
     return out
+
+
+def _segmentation_row(spec, folder: Path) -> dict:
+    """A remake segmented with the default settings against its true masks (:func:`_error_row`)."""
+    return _error_row(*_segmented_and_true(folder))
+
+
+def _codec_row(spec, folder: Path) -> dict:
+    """:func:`_segmentation_row` and the video's size in bits per pixel."""
+    pixels = spec.width * spec.height * spec.n_frames
+    return _segmentation_row(spec, folder) | {"bits_per_pixel": 8 * (folder / "video.mp4").stat().st_size / pixels}
 
 
 def sources(fresh: int, names: list[str]) -> dict:
     """Which part of the recording makes the segmentation err: each concealed recording remade
     without H.264 (lossless RGB instead: libx264rgb, crf 0), without sensor noise, without motion
     blur (one render per frame at the frame's time), with motion blur alone (neither codec nor
-    noise) and without all three (:func:`_remade`)."""
-    return _remade(fresh, names, SOURCES)
+    noise) and without all three (:func:`_remade`), and segmented (:func:`_segmentation_row`)."""
+    return _remade(fresh, names, SOURCES, _segmentation_row)
 
 
 # The H.264 encoding's two losses apart, and its quality: libx264 at crf 0 on yuv420p is lossless but
@@ -394,8 +406,8 @@ CODECS = {"as recorded (crf 14, 4:2:0)": {}, "4:2:0 alone (crf 0)": {"crf": 0},
 
 def codec(fresh: int, names: list[str]) -> dict:
     """Which part of the H.264 encoding makes the segmentation err, and how its quality does: each
-    recording remade with the encodings of :data:`CODECS` (:func:`_remade`, with bits per pixel)."""
-    return _remade(fresh, names, CODECS, bits_per_pixel=True)
+    recording remade with the encodings of :data:`CODECS` (:func:`_remade`, :func:`_codec_row`)."""
+    return _remade(fresh, names, CODECS, _codec_row)
 
 
 def _raw(moments: tuple) -> torch.Tensor:
@@ -518,22 +530,8 @@ def stretch_sources(fresh: int, names: list[str]) -> dict:
     """Is the stretch motion blur? Each recording remade as recorded and without motion blur (one
     render per frame; codec and noise unchanged, as :func:`sources`), segmented, and
     :func:`_stretch_row` of each."""
-    import tempfile
-
-    import make_concealed as mc
-    import make_recordings as mr
-
-    mr.offscreen_gl()
-    specs = {s.name: s for s, _ in mc.concealed_specs(fresh)}
-    out = {}
-    for name in names:
-        for source in ("as recorded", "no motion blur"):
-            with tempfile.TemporaryDirectory() as tmp:
-                mr.make_recording(specs[name].replace(**SOURCES[source]), Path(tmp), verbose=False)
-                row = _stretch_row(_segmented_and_true(Path(tmp) / name)[0], Path(tmp) / name)
-            out.setdefault(f"{mc.fresh_folder(fresh).name}/{name}", {})[source] = row
-            print(fresh, name, source, f"stretch {row['mean']:+.3f} correlation {row['correlation']:+.2f}", flush=True)
-    return out
+    return _remade(fresh, names, {source: SOURCES[source] for source in ("as recorded", "no motion blur")},
+                   lambda spec, folder: _stretch_row(_segmented_and_true(folder)[0], folder))
 
 def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | None = None) -> dict:
     """Why a blurred ball comes out longer along its motion: the segmentation's per-pixel coverage
@@ -614,30 +612,17 @@ def contrast(folder: Path) -> dict:
     return {name: float(np.corrcoef(error, value)[0, 1]) for name, value in predictors.items()}
 
 def main(argv: list[str]) -> None:
-    if argv[:1] == ["sources"] and len(argv) > 2:
-        file = HERE / "results" / "diagnose_sources.json"
+    remakes = {"sources": (sources, SOURCES, ERROR_KEYS), "codec": (codec, CODECS, ERROR_KEYS + ("bits_per_pixel",)),
+               "stretch-sources": (stretch_sources, None, None)}
+    if argv[:1] and argv[0] in remakes and len(argv) > 2:
+        command, columns, keys = remakes[argv[0]]
+        file = HERE / "results" / f"diagnose_{argv[0].replace('-', '_')}.json"
         result = json.loads(file.read_text()) if file.exists() else {}
-        result.update(sources(int(argv[1]), argv[2:]))
-        rows = [r for k, r in result.items() if k != "mean" and set(r) == set(SOURCES)]
-        result["mean"] = _means(rows, SOURCES) | {"recordings": len(rows)}
-        print(json.dumps(result["mean"], indent=1))
-        file.write_text(json.dumps(result, indent=1))
-        return
-    if argv[:1] == ["codec"] and len(argv) > 2:
-        file = HERE / "results" / "diagnose_codec.json"
-        result = json.loads(file.read_text()) if file.exists() else {}
-        result.update(codec(int(argv[1]), argv[2:]))
-        rows = [r for k, r in result.items() if k != "mean" and set(r) == set(CODECS)]
-        result["mean"] = {c: {k: float(np.mean([r[c][k] for r in rows])) for k in ("c_rms", "c_slow", "edge_sd", "edge_slow",
-                                                                                    "bits_per_pixel")}
-                          for c in CODECS} | {"recordings": len(rows)}
-        print(json.dumps(result["mean"], indent=1))
-        file.write_text(json.dumps(result, indent=1))
-        return
-    if argv[:1] == ["stretch-sources"] and len(argv) > 2:
-        file = HERE / "results" / "diagnose_stretch_sources.json"
-        result = json.loads(file.read_text()) if file.exists() else {}
-        result.update(stretch_sources(int(argv[1]), argv[2:]))
+        result.update(command(int(argv[1]), argv[2:]))
+        if columns is not None:  # the means over the recordings remade every way
+            rows = [r for k, r in result.items() if k != "mean" and set(r) == set(columns)]
+            result["mean"] = _means(rows, columns, keys) | {"recordings": len(rows)}
+            print(json.dumps(result["mean"], indent=1))
         file.write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["ramp"] and len(argv) > 2:

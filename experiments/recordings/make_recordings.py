@@ -939,6 +939,8 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
     renderer = mj.Renderer(model, Hr, Wr)
     S = LENS_MASK_SUPERSAMPLE
     fine = mj.Renderer(model, S * Hr, S * Wr) if maps is not None else None
+    if fine is not None:  # renders nothing but the true masks
+        fine.enable_segmentation_rendering()
     rng = np.random.default_rng(10_000 + spec.seed)
     out = Path(out_dir) / spec.name
     out.mkdir(parents=True, exist_ok=True)
@@ -992,7 +994,6 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
                 renderer.update_scene(data, camera="cam")
                 masks[i] = object_mask(renderer.render(), scene)
             else:  # supersampled coverage, resampled linearly (LENS_MASK_SUPERSAMPLE)
-                fine.enable_segmentation_rendering()
                 fine.update_scene(data, camera="cam")
                 cover = object_mask(fine.render(), scene).reshape(Hr, S, Wr, S).mean((1, 3), dtype=np.float32)
                 masks[i] = cv2.remap(cover, maps[0], maps[1], cv2.INTER_LINEAR) >= 0.5
