@@ -295,12 +295,41 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     conc = _load("concealed", CONCEALED.parent / "concealed.py")
     weak = {"quadratic_drag": {"drag_coefficient": 0.2}}  # limit 0.3 in _content
     strong = {"quadratic_drag": {"drag_coefficient": 0.5}}
-    assert conc.below_exact_limit(conc.row("drag_x", _content([], weak)))
-    assert not conc.below_exact_limit(conc.row("drag_x", _content([], strong)))  # missed, yet above its limit
-    assert not conc.below_exact_limit(conc.row("drag_x", _content(["quadratic_drag"], weak)))  # named
-    assert not conc.below_exact_limit(conc.row("control_x", _content([], {})))
+    assert conc.below_limit(conc.row("drag_x", _content([], weak)))
+    assert not conc.below_limit(conc.row("drag_x", _content([], strong)))  # missed, yet above its limit
+    assert not conc.below_limit(conc.row("drag_x", _content(["quadratic_drag"], weak)))  # named
+    assert not conc.below_limit(conc.row("control_x", _content([], {})))
     clock = conc.row("time_x", _content([], {"time_scale": {"time_scale": 1.005}}))  # limit 0.01 on 0.005
-    assert conc.below_exact_limit(clock)
+    assert conc.below_limit(clock)
+
+
+def test_outcome_tells_honest_answers_from_failures(tmp_path):
+    """Each effect case ends in exactly one of OUTCOMES: named right; a tie reported between
+    look-alikes that holds the truth; nothing named where the run's own detection limit is above
+    the truth (or not); a verdict withheld; a name not hidden. The table counts them per set."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    weak = {"quadratic_drag": {"drag_coefficient": 0.2}}  # limit 0.3 in _content
+    strong = {"quadratic_drag": {"drag_coefficient": 0.5}}
+    tie = _content([], strong) | {"indistinguishable": [["time_scale", "quadratic_drag"]]}
+    other_tie = _content([], strong) | {"indistinguishable": [["time_scale", "lens_distortion"]]}
+    withheld = _content([], strong) | {"verdict_withheld": ["quadratic_drag"]}
+    cases = {"named": _content(["quadratic_drag"], strong), "tie": tie, "below": _content([], weak),
+             "above": _content([], strong), "other_tie": other_tie, "withheld": withheld,
+             "wrong": _content(["quadratic_drag", "time_scale"], strong)}
+    ended = {name: conc.outcome(conc.row(f"drag_{name}", content)) for name, content in cases.items()}
+    assert ended == {"named": conc.OUTCOMES[0], "tie": conc.OUTCOMES[1], "below": conc.OUTCOMES[2],
+                     "above": conc.OUTCOMES[3], "other_tie": conc.OUTCOMES[3], "withheld": conc.OUTCOMES[4],
+                     "wrong": conc.OUTCOMES[5]}
+    assert conc.outcome(conc.row("control_x", _content(["time_scale"], {}))) == conc.OUTCOMES[5]
+    rows = [conc.row(f"drag_{name}", content) for name, content in cases.items()]
+    rows.append(conc.row("control_x", _content([], {})))  # controls are not effect cases
+    (tmp_path / "concealed").mkdir()
+    (tmp_path / "concealed" / "summary.json").write_text(json.dumps(rows))
+    table = conc.outcomes(tmp_path)
+    assert "| first | 1 | 1 (drag_tie) | 1 (drag_below) | 2 (drag_above, drag_other_tie) | 1 (drag_withheld) " \
+           "| 1 (drag_wrong) |" in table
+    assert table.splitlines()[-1] == "| **all** | **1** | **1** | **1** | **2** | **1** | **1** |"
 
 
 def test_scoreboard_takes_the_exact_limit_from_the_exact_masks_own_floor_where_run(tmp_path):
