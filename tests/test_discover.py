@@ -265,11 +265,32 @@ def test_limits_line_says_unobservable_where_the_limit_is_beyond_what_the_physic
 
     reach = {"com_offset.offset": np.array([0.02, 0.02, 0.02])}
     far = limits_line(selection([190.0, 23.0, 6.8]), "clip", reach=reach)
-    assert far[0] == ("What this clip cannot rule out (an effect smaller than this would not pass the criterion): "
-                      "quadratic_drag.drag_coefficient ±1.")
+    assert far[0] == ("What this clip cannot rule out (a parameter smaller than this, the effect's others at "
+                      "their null, would not pass the criterion): quadratic_drag.drag_coefficient ±1.")
     assert far[1] == ("Not observable on this clip at any size the physics allows: com_offset.offset "
                       "(it would need ±(1.9e+02, 23, 6.8) m (body frame); the physics allows ±(0.02, 0.02, 0.02)).")
     near = limits_line(selection([0.005, 0.03, 0.001]), "clip", reach=reach)
     assert len(near) == 1 and ("com_offset.offset ±(0.005, 0.03, 0.001) m (body frame), along y more than the "
                                "physics allows (none there).") in near[0]
     assert "com_offset.offset ±(1.9e+02, 23, 6.8) m" in limits_line(selection([190.0, 23.0, 6.8]), "clip")[0]
+
+
+def test_alone_std_is_the_error_of_a_parameter_fitted_with_its_effects_others_fixed():
+    """Linear least squares with one nuisance column and an effect of two strongly correlated
+    columns (a lens's k1 and k2): the error of k1 fitted with k2 left out equals alone_std of the
+    effect's block of the full fit's covariance (the Schur complement), and is far below k1's
+    marginal error there. A one-parameter block's alone error is its marginal one."""
+    from torchfit.discover import alone_std
+
+    gen = torch.Generator().manual_seed(3)
+    x = torch.linspace(0.0, 1.0, 50, dtype=torch.float64)
+    k1 = x**2 + 0.01 * torch.randn(50, generator=gen, dtype=torch.float64)
+    jac = torch.stack([torch.ones_like(x), k1, x**2 + 0.2 * x**4], 1)  # nuisance, k1, k2
+    sigma = 0.3
+    cov = torch.linalg.inv(jac.T @ jac) * sigma**2
+    alone = alone_std(cov[1:, 1:])
+    for i, col in ((0, 1), (1, 2)):
+        sub = jac[:, [0, col]]
+        assert float(alone[i]) == pytest.approx(float((torch.linalg.inv(sub.T @ sub) * sigma**2)[1, 1].sqrt()), rel=1e-9)
+    assert float(alone[0]) < 0.2 * float(cov[1, 1].sqrt())  # correlated: alone far below marginal
+    assert float(alone_std(cov[1:2, 1:2])[0]) == pytest.approx(float(cov[1, 1].sqrt()), rel=1e-12)

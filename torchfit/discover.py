@@ -63,6 +63,7 @@ __all__ = [
     "locate_points",
     "plot_residuals",
     "select_effects",
+    "alone_std",
     "wald_statistic",
     "without_weakest_block",
 ]
@@ -247,6 +248,19 @@ def wald_statistic(value: torch.Tensor, null: torch.Tensor, cov: torch.Tensor) -
     return float(diff @ torch.linalg.pinv(cov, hermitian=True) @ diff)
 
 
+def alone_std(cov: torch.Tensor) -> torch.Tensor:
+    """(P,) standard error of each of P parameters of one effect with the effect's others held
+    fixed, from their (P, P) covariance (the rest of the model marginalised): ``1 / sqrt((C^+)_ii)``.
+
+    The size an effect needs to pass is a statement about one parameter moving alone (a lens's
+    k1 with k2 at its null): a pair as correlated as k1 and k2 has marginal errors tens of times
+    larger than either one's alone, and a limit from those would call detectable lenses invisible.
+    Equal to the marginal error for a one-parameter block; inf where the data do not see it.
+    """
+    precision = torch.linalg.pinv(cov.double(), hermitian=True).diagonal()
+    return torch.where(precision > 0, precision.clamp(min=1e-300).rsqrt(), torch.full_like(precision, math.inf))
+
+
 def _scaled(std, factor: float):
     """``std`` (a number or a list of numbers) times ``factor``; NaN where unknown."""
     if isinstance(std, (list, tuple)):
@@ -291,7 +305,8 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
             need = math.sqrt(max(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)), 0.0))
             step.scores[name] = {
-                "detectable_above": {p: _scaled(entry.get("std"), need) for p, entry in fit.params.get(name, {}).items()},
+                "detectable_above": {p: _scaled(entry.get("alone_std", entry.get("std")), need)
+                                     for p, entry in fit.params.get(name, {}).items()},
                 "model": list(effects), "delta_chi2": d_chi, "delta_dof": d_k, "delta_bic": bic_base - bic,
                 "p_value": p_value, "sigma": float(stats.norm.isf(max(p_value, 1e-300))) if p_value < 0.5 else 0.0,
                 "delta_loss": base.rss - fit.rss, "rms_before": base.fit_rms, "rms_after": fit.fit_rms,
@@ -431,17 +446,25 @@ class PointsProblem:
         """
         variance = self._variance(fit)
         out: dict = {}
+        columns = fit.model.columns[fit.model._first_effect():]
+        spans, col = {}, fit.model.n_local  # each effect's contiguous columns
+        for name, _, size in columns:
+            spans[name] = (spans.get(name, (col,))[0], col + size)
+            col += size
         col = fit.model.n_local
-        for name, pname, size in fit.model.columns[fit.model._first_effect():]:
+        for name, pname, size in columns:
             value = fit.params[0, col:col + size]
             if fit.shared_covariance is not None:
-                start = col - fit.model.n_local
-                cov = fit.shared_covariance[start:start + size, start:start + size]
-                std = torch.sqrt(torch.diagonal(cov).clamp(min=0) * variance)
+                start, (a, b) = col - fit.model.n_local, spans[name]
+                cov = fit.shared_covariance * variance
+                std = torch.sqrt(torch.diagonal(cov[start:start + size, start:start + size]).clamp(min=0))
+                local = fit.model.n_local
+                alone = alone_std(cov[a - local:b - local, a - local:b - local])[col - a:col - a + size]
             else:
-                std = torch.full((size,), float("nan"), dtype=torch.float64)
+                std = alone = torch.full((size,), float("nan"), dtype=torch.float64)
             entry = {"value": value.tolist() if size == 3 else float(value),
                      "std": std.tolist() if size == 3 else float(std),
+                     "alone_std": alone.tolist() if size == 3 else float(alone),
                      "unit": EFFECTS[name].units.get(pname, "")}
             out.setdefault(name, {})[pname] = entry
             col += size
@@ -604,7 +627,8 @@ def _size_text(values: np.ndarray, vector: bool) -> str:
 
 def limits_line(selection: Selection, data: str, reach: dict | None = None) -> list[str]:
     """What the first round could not have seen: each unnamed parameter's size below which it
-    would not pass the criterion on this ``data`` ("clip", "tracks").
+    would not pass the criterion on this ``data`` ("clip", "tracks"), moving alone (the
+    effect's other parameters at their null; :func:`alone_std`).
 
     ``reach`` optionally gives, per ``"effect.parameter"``, the largest size the physics allows
     (a scalar, or one per component of a vector parameter, e.g. how far the body extends from its
@@ -637,8 +661,8 @@ def limits_line(selection: Selection, data: str, reach: dict | None = None) -> l
             limits.append(f"{key} {needed}{note}")
     lines = []
     if limits:
-        lines.append(f"What this {data} cannot rule out (an effect smaller than this would not pass the criterion): "
-                     + "; ".join(limits) + ".")
+        lines.append(f"What this {data} cannot rule out (a parameter smaller than this, the effect's others at "
+                     "their null, would not pass the criterion): " + "; ".join(limits) + ".")
     if unseen:
         lines.append(f"Not observable on this {data} at any size the physics allows: " + "; ".join(unseen) + ".")
     return lines

@@ -43,6 +43,7 @@ from .discover import (
     SelectionSettings,
     _criterion,
     _jsonable,
+    alone_std,
     limits_line,
     not_named_lines,
     select_effects,
@@ -703,9 +704,11 @@ class VideoProblem:
         return [(run.model, run.resid, run.jac) for run in runs]
 
     def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float], dict]:
-        """Standard errors of the effect parameters, of the edge bias's two terms (pixels), and each
-        effect's Wald statistic against its null values (:func:`torchfit.discover.wald_statistic`):
-        Gauss-Newton at the optimum, inflated by the reduced chi-squared when it exceeds 1."""
+        """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
+        :func:`torchfit.discover.alone_std` the second), of the edge bias's two terms (pixels), and
+        each effect's Wald statistic against its null values
+        (:func:`torchfit.discover.wald_statistic`): Gauss-Newton at the optimum, inflated by the
+        reduced chi-squared when it exceeds 1."""
         good = torch.isfinite(resid)
         j, r = jac[good], resid[good]
         n, p = len(j), j.shape[1] - int(self._frozen(model).sum())  # held-fixed columns are zero
@@ -714,19 +717,22 @@ class VideoProblem:
         std = cov.diagonal().clamp(min=0).sqrt()[14:]
         out, wald, offset = {}, {}, 0
         for name, params in model.values.items():
-            start, value, null = offset, [], []
+            start, value, null, scales = offset, [], [], []
             for pname, current in params.items():
-                count = torch.as_tensor(current).numel()
-                scale = EFFECT_SCALES.get(pname, 0.1)
-                part = std[offset:offset + count] * scale
-                offset += count
-                out.setdefault(name, {})[pname] = part.tolist() if count > 1 else float(part[0])
+                count, scale = torch.as_tensor(current).numel(), EFFECT_SCALES.get(pname, 0.1)
+                scales.append((pname, count, scale))
                 # in the Jacobian's scaled units
                 value.append(torch.as_tensor(current, dtype=torch.float64).reshape(-1) / scale)
                 null.append(torch.as_tensor(EFFECTS[name].null_params[pname], dtype=torch.float64).reshape(-1)
                             .expand(count) / scale)
+                offset += count
             block = cov[14 + start:14 + offset, 14 + start:14 + offset].cpu()
             wald[name] = wald_statistic(torch.cat(value), torch.cat(null), block)
+            alone, at = alone_std(block), start
+            for pname, count, scale in scales:
+                part, solo = std[at:at + count].cpu() * scale, alone[at - start:at - start + count] * scale
+                out.setdefault(name, {})[pname] = tuple(x.tolist() if count > 1 else float(x[0]) for x in (part, solo))
+                at += count
         return out, (float(std[offset]) * EDGE_SCALE, float(std[offset + 1]) * EDGE_SCALE), wald
 
     def _describe(self, model: _Model, std: dict) -> dict:
@@ -735,9 +741,10 @@ class VideoProblem:
             params[name] = {}
             for pname, value in values.items():
                 value = torch.as_tensor(value)
+                spread, alone = std.get(name, {}).get(pname, (float("nan"), float("nan")))
                 params[name][pname] = {
                     "value": value.tolist() if value.numel() > 1 else float(value),
-                    "std": std.get(name, {}).get(pname, float("nan")),
+                    "std": spread, "alone_std": alone,
                     "unit": EFFECTS[name].units.get(pname, ""),
                 }
         return params
