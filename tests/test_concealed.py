@@ -301,6 +301,9 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     assert not conc.below_limit(conc.row("control_x", _content([], {})))
     clock = conc.row("time_x", _content([], {"time_scale": {"time_scale": 1.005}}))  # limit 0.01 on 0.005
     assert conc.below_limit(clock)
+    lens = _content([], {"lens_distortion": {"k1": -0.05, "k2": 0.01}})
+    lens["effects"]["lens_distortion"] = [{"delta_bic": 1.0, "detectable_above": {"k1": 0.2, "k2": 0.5}}]
+    assert not conc.below_limit(conc.row("lens_x", lens))  # two numbers: never called below
 
 
 def test_outcome_tells_honest_answers_from_failures(tmp_path):
@@ -330,6 +333,13 @@ def test_outcome_tells_honest_answers_from_failures(tmp_path):
     assert "| first | 1 | 1 (drag_tie) | 1 (drag_below) | 2 (drag_above, drag_other_tie) | 1 (drag_withheld) " \
            "| 1 (drag_wrong) |" in table
     assert table.splitlines()[-1] == "| **all** | **1** | **1** | **1** | **2** | **1** | **1** |"
+    grid = conc.verdict_grid(tmp_path).splitlines()
+    assert grid[0] == "| recording | hidden | first |"
+    assert "| drag_named | quadratic_drag | right |" in grid and "| drag_below | quadratic_drag | below limit |" in grid
+    assert "| drag_tie | quadratic_drag | tie: time_scale, quadratic_drag |" in grid
+    assert "| drag_withheld | quadratic_drag | WITHHELD: quadratic_drag |" in grid
+    assert "| drag_wrong | quadratic_drag | WRONG: quadratic_drag, time_scale |" in grid
+    assert grid[-1] == "| control_x | nothing | quiet |"  # controls last
 
 
 def test_scoreboard_takes_the_exact_limit_from_the_exact_masks_own_floor_where_run(tmp_path):

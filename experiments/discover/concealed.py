@@ -225,21 +225,25 @@ MASKS = {"segmented": "", "exact": "_true_masks"} | {f"exact, floor {edge:g} px"
 
 def below_limit(r: dict) -> bool:
     """Whether a recording's hidden effect is below what its clip can show, by the run's own
-    account: not named, and every (scalar) parameter's detection limit in that run
-    (``detectable_above``, what discover reports as "what this clip cannot rule out") larger than
-    its true departure from the null. ``r`` is the recording's :func:`row`: from a ``--true-masks``
-    run, the limit of the engine's exact masks; from a segmented run, the video's. Vector
-    parameters (an offset) are never called below the limit."""
-    if r["right"] or not r["truth"]:
+    account: not named, the effect one scalar parameter (a drag or lift coefficient, a clock),
+    and that parameter's detection limit in the run (``detectable_above``, what discover
+    reports as "what this clip cannot rule out") larger than its true departure from the null.
+    ``r`` is the recording's :func:`row`: from a ``--true-masks`` run, the limit of the engine's
+    exact masks; from a segmented run, the video's. Effects of several numbers (a lens's k1 and
+    k2, an offset) are never called below their limit: one number per parameter does not say
+    whether their combination would pass (and runs before 2026-11-26's eighth session stored
+    marginal limits, which for k1 and k2 are tens of times too large)."""
+    if r["right"] or len(r["truth"]) != 1:
         return False
-    below = []
-    for effect in r["truth"]:
-        for pname, limit in r["detectable_above"].get(effect, {}).items():
-            true, null = r["truth_effects"][effect][pname], EFFECTS[effect].null_params[pname]
-            if isinstance(limit, list) or isinstance(true, list):
-                return False
-            below.append(limit > abs(true - null))
-    return bool(below) and all(below)
+    (effect,) = r["truth"]
+    limits, truth = r["detectable_above"].get(effect, {}), r["truth_effects"][effect]
+    if len(limits) != 1 or len(truth) != 1:
+        return False
+    (pname, limit), = limits.items()
+    true, null = truth[pname], EFFECTS[effect].null_params[pname]
+    if isinstance(limit, list) or isinstance(true, list):
+        return False
+    return limit > abs(true - null)
 
 
 # How a recording's run ended, from the best to the worst (:func:`outcome`)
@@ -281,6 +285,33 @@ def outcomes(root: Path = OUT.parent, suffix: str = "") -> str:
         totals = [t + len(v) for t, v in zip(totals, ended.values())]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     lines.append("| **all** | " + " | ".join(f"**{t}**" for t in totals) + " |")
+    return "\n".join(lines)
+
+
+# Each outcome's word in the verdict grid (:func:`verdict_grid`), the failures in capitals
+GRID_WORDS = dict(zip(OUTCOMES, ("right", "tie", "below limit", "MISSED", "WITHHELD", "WRONG")))
+
+
+def verdict_grid(root: Path = OUT.parent, suffix: str = "") -> str:
+    """Every recording against every set on the segmented video (``suffix``: a variant's
+    results), each cell its :func:`outcome` in a word (:data:`GRID_WORDS`; a control's
+    "quiet" or "ALARM") and the names discover gave, from the stored runs (no fitting)."""
+    runs = {label: {r["recording"]: r for r in json.loads(file.read_text())}
+            for label, name in SETS.items() if (file := root / f"{name}{suffix}" / "summary.json").exists()}
+    names = sorted({n for rows in runs.values() for n in rows}, key=lambda n: (n.startswith("control"), n))
+    lines = ["| recording | hidden | " + " | ".join(runs) + " |", "|---" * (len(runs) + 2) + "|"]
+    for name in names:
+        cells = []
+        for rows in runs.values():
+            r = rows.get(name)
+            if r is None:
+                cells.append("")
+                continue
+            word = GRID_WORDS[outcome(r)] if r["truth"] else ("quiet" if r["right"] else "ALARM")
+            said = ", ".join(r["verdict"] or r.get("verdict_withheld") or (r["indistinguishable"] or [[]])[0])
+            cells.append(word + (f": {said}" if said and word != "right" else ""))
+        hidden = next((", ".join(r["truth"]) for rows in runs.values() if (r := rows.get(name))), "")
+        lines.append(f"| {name} | {hidden or 'nothing'} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -635,7 +666,9 @@ if __name__ == "__main__":
         sys.exit(print(text))
     if args.scoreboard:
         board = scoreboard() + ("\n\nHow the segmented video's effect cases ended (concealed.outcome: the "
-                                "recordings of every column but the first named):\n\n" + outcomes())
+                                "recordings of every column but the first named):\n\n" + outcomes()
+                                + "\n\nEvery recording on the segmented video (concealed.verdict_grid):\n\n"
+                                + verdict_grid())
         (OUT.parent / "scoreboard.md").write_text(board + "\n")
         sys.exit(print(board))
     if args.fresh < 0:
