@@ -116,7 +116,7 @@ EDGE_LOCATE_PRIORS = 3.0
 # (Pearson correlation over the used frames). Chosen on nine concealed recordings; then, segmented
 # masks against the true poses on all 48 without a lens (diagnose.py stretch): the balls 0.56-0.85
 # (12 of 12 above it), boxes 0.32-0.79 (8 of 12), T-handles -0.33-0.65 (4 of 15) and cylinders
-# -0.04-0.75 (1 of 9), whose turning outlines hide the stretch (experiments/discover/README.md,
+# -0.04-0.75 (1 of 9), whose turning outlines hide the stretch (experiments/discover/HISTORY.md,
 # *Motion blur named in the report*).
 BLUR_CORRELATION = 0.5
 # ...and when the stretch is large enough to account for the mismatch: a stretch s (log of the
@@ -133,7 +133,7 @@ BLUR_SHARE = 0.5
 # video, run without the rule, the two spurious names did not survive it: magnus_cylinder's clock
 # (ΔBIC 10.1; -1.5 without frames 0-17) and drag_tshape's second-round com_offset (15.5; -0.7
 # without frames 0-14), while the right names kept 4.8 (time_tshape) to 246 (com_cylinder); see
-# experiments/discover/README.md.
+# experiments/discover/HISTORY.md.
 # The held-out error may not grow by more than 5 % (it need not shrink), unless
 # it stays within 1.5 noise floors (RMS): at the noise level the relative rule compares noise with noise. A
 # frame-rate error and a depth moved with the outline (the edge bias) predict the same centroids, so
@@ -180,7 +180,7 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 # experiments/discover/edge_bias.py); with the local shading of the segmentation (2026-11-23)
 # it is -0.01, +0.07, +0.11, +0.05, +0.00 px, still within the prior (not re-tuned).
 # Where the model is right the fitted bias matches the measured one to a few hundredths of a pixel;
-# a missing effect pulls it (a wrong clock: time_box -1.25 px), see experiments/discover/README.md.
+# a missing effect pulls it (a wrong clock: time_box -1.25 px), see experiments/discover/HISTORY.md.
 EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
@@ -190,7 +190,7 @@ _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabula
 # shorter silhouette). Measured against the true masks (edge_bias.py --by-normal, ends minus
 # sides): -0.20 and -0.30 px on control_cylinder (first and fresh set 1), -0.19 and -0.14 on
 # control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter through a
-# false clock of 0.994 (experiments/discover/README.md). Prior: EDGE_SHAPE_PRIOR_PX.
+# false clock of 0.994 (experiments/discover/HISTORY.md). Prior: EDGE_SHAPE_PRIOR_PX.
 EDGE_SHAPE_PRIOR_PX = 0.15
 # stored in discover.json's edge_px: which nuisance a run fitted (the mask's own axis until 2026-11-23)
 EDGE_FORM = "b0 + b1 e cos(2 phi), axis of the fitted silhouette"

@@ -1,4 +1,4 @@
-"""Diagnostics behind the discover README's sections *The exact masks of fresh set 2, and the
+"""Diagnostics behind the sections of experiments/discover/HISTORY.md *The exact masks of fresh set 2, and the
 scoreboard* and *What limits the video: four checks*.
 
     python experiments/discover/diagnose.py segmentation SET NAME...   # segmented minus true masks per frame, ~1 min each
@@ -193,7 +193,7 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
     train cost and held-out centroid error as discover leaves it, after 40 more LM iterations
     (with LM's early stop on a relative decrease below 1e-5, and without it),
     and from the all-frames optimum (which has seen the held-out frames: a start discover does not
-    use). The README's earlier tables have one more row, the effect screened on the train frames
+    use). HISTORY.md's earlier tables have one more row, the effect screened on the train frames
     alone; since d572dc3 discover itself starts the held-out fit from that screening, so that row
     is now the first one. Then the same fits with the
     ``scale`` channel's noise floor times ``scale_factor`` (is the size, i.e. the depth, what

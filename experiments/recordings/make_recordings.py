@@ -638,7 +638,7 @@ def offscreen_gl() -> str:
 
     A set ``MUJOCO_GL`` is kept; otherwise OSMesa where its library is installed, else EGL (Mesa's
     software EGL, on machines without OSMesa: it renders the same masks, checked on a concealed
-    recording in experiments/discover/README.md, 2026-11-25).
+    recording in experiments/discover/HISTORY.md, 2026-11-25).
     """
     import ctypes.util
 
