@@ -280,7 +280,9 @@ def test_concealed_verdict_is_right_only_when_exactly_the_hidden_effects_are_nam
     assert conc._without_third(score) == 2.5
     table = conc.table([exact, extra, wrong])
     assert "| NO (also named com_offset) |" in table and table.count("| NO |") == 1
+    wrong["concealed"] = False  # its baseline fitted at IoU < 0.9
     counts = conc.score([exact, extra, wrong, quiet, alarm])
+    assert counts["concealed"] == [2, 3]  # effect cases only: a control has nothing to conceal
     assert counts["effect_right"] == [1, 3] and counts["controls_quiet"] == [1, 2]
     assert counts["wrong_names"] == ["control_x", "drag_x", "drag_x"]
     assert counts["heldout_halved"] == [1, 1]  # 2.0 -> 1.0 px
@@ -359,10 +361,10 @@ def test_scoreboard_takes_the_exact_limit_from_the_exact_masks_own_floor_where_r
         (tmp_path / name / "summary.json").write_text(json.dumps(rows))
     board = conc.scoreboard(tmp_path)
     assert "| first | below the exact-mask limit | drag_b |" in board  # drag_a is named at the own floor
-    assert "| first | segmented | 0 of 2 | 1 of 1 | none | 0 of 0 | 0 of 0 | 0 of 1 |" in board
-    assert "| first | exact | 0 of 2 | 1 of 1 | none | 0 of 0 | 0 of 0 | 0 of 1 |" in board
+    assert "| first | segmented | 0 of 2 | 1 of 1 | none | 0 of 0 | 0 of 0 | 2 of 2 | 0 of 1 |" in board
+    assert "| first | exact | 0 of 2 | 1 of 1 | none | 0 of 0 | 0 of 0 | 2 of 2 | 0 of 1 |" in board
     floor = f"exact, floor {conc.EXACT_EDGE_PX:g} px"
-    assert f"| first | {floor} | 1 of 1 | 1 of 1 | none | 1 of 1 | 0 of 1 | 1 of 1 |" in board  # C_d 0.5 on 0.2
+    assert f"| first | {floor} | 1 of 1 | 1 of 1 | none | 1 of 1 | 0 of 1 | 1 of 1 | 1 of 1 |" in board  # C_d 0.5 on 0.2
     assert f"| **all** | {floor} | 1 of 1 |" in board
 
 

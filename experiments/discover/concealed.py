@@ -173,7 +173,8 @@ def score(rows: list[dict]) -> dict:
     """The issue's targets counted over ``rows`` (:func:`row`): right verdicts on effect cases,
     quiet controls, recordings with a name that is not hidden, held-out error at least halved
     where the right effect was named, drag and lift coefficients within 25 % of the truth, and
-    concealment (baseline mean IoU >= 0.9 on the fitted frames)."""
+    effect cases concealed as the issue defines it (baseline mean IoU >= 0.9 on the fitted frames;
+    a control hides nothing to conceal)."""
     effect = [r for r in rows if r["truth"]]
     controls = [r for r in rows if not r["truth"]]
     named = [r for r in effect if r["right"]]
@@ -185,7 +186,7 @@ def score(rows: list[dict]) -> dict:
         "wrong_names": sorted(r["recording"] for r in rows if set(r["verdict"]) - set(r["truth"])),
         "heldout_halved": [sum(_halved(r) for r in named), len(named)],
         "coefficients_within_25pc": [sum(abs(f - t) <= 0.25 * abs(t) for _, f, t in coefficients), len(coefficients)],
-        "concealed": [sum(r["concealed"] for r in rows), len(rows)],
+        "concealed": [sum(r["concealed"] for r in effect), len(effect)],
     }
 
 
@@ -197,7 +198,8 @@ def score_line(counts: dict) -> str:
             f"{part(counts['controls_quiet'])}; a name not hidden on "
             f"{', '.join(counts['wrong_names']) or 'no recording'}; held-out error at least halved on "
             f"{part(counts['heldout_halved'])} right names; drag and lift coefficients within 25 % on "
-            f"{part(counts['coefficients_within_25pc'])}; baseline IoU >= 0.9 on {part(counts['concealed'])}.")
+            f"{part(counts['coefficients_within_25pc'])}; effect cases concealed (baseline IoU >= 0.9) "
+            f"{part(counts['concealed'])}.")
 
 
 # fresh sets 3 and 4 were made and run on 2026-11-26 (sixth session), once each, with no rule that
@@ -323,7 +325,8 @@ def scoreboard(root: Path = OUT.parent) -> str:
     is one, else from its run at the segmentation's); from the stored summary.json of each run
     (no fitting)."""
     lines = ["| set | masks | right | controls quiet | wrong names | held-out halved | coefficients within 25 % "
-             "| right, effect above its exact-mask limit |", "|---|---|---|---|---|---|---|---|"]
+             "| effects concealed (baseline IoU ≥ 0.9) | right, effect above its exact-mask limit |",
+             "|---|---|---|---|---|---|---|---|---|"]
     totals: dict = {}
     for label, name in SETS.items():
         exact: dict = {}
@@ -341,12 +344,17 @@ def scoreboard(root: Path = OUT.parent) -> str:
             above = [r for r in rows if r["truth"] and r["recording"] not in below and r["recording"] in exact]
             counts["above_limit"] = [sum(r["right"] for r in above), len(above)]
             _add_counts(totals.setdefault(masks, {}), counts)
-            lines.append(_board_row(label, masks, counts))
+            lines.append(_board_row(label, masks, counts, _concealed_and_above(counts)))
         if below:
-            lines.append(f"| {label} | below the exact-mask limit | {', '.join(below)} | | | | | |")
+            lines.append(f"| {label} | below the exact-mask limit | {', '.join(below)} | | | | | | |")
     for masks, counts in totals.items():
-        lines.append(_board_row("**all**", masks, counts))
+        lines.append(_board_row("**all**", masks, counts, _concealed_and_above(counts)))
     return "\n".join(lines)
+
+
+def _concealed_and_above(counts: dict) -> str:
+    """The scoreboard's last two cells: effect cases concealed, right ones above their limit."""
+    return " | ".join(f"{a} of {b}" for a, b in (counts["concealed"], counts["above_limit"]))
 
 
 def _rounds(content: dict) -> dict:
@@ -465,14 +473,13 @@ def rules_text(tally: dict) -> str:
     return "\n".join(lines)
 
 
-def _board_row(label: str, masks: str, counts: dict, last: str | None = None) -> str:
-    """A scoreboard row of :func:`score`'s ``counts``; its last cell ``last`` or, by default,
-    the right verdicts above the exact-mask limit."""
+def _board_row(label: str, masks: str, counts: dict, last: str) -> str:
+    """A scoreboard row of :func:`score`'s ``counts``, its last cell (or cells) ``last``."""
     def part(pair):
         return f"{pair[0]} of {pair[1]}"
     return (f"| {label} | {masks} | {part(counts['effect_right'])} | {part(counts['controls_quiet'])} | "
             f"{', '.join(counts['wrong_names']) or 'none'} | {part(counts['heldout_halved'])} | "
-            f"{part(counts['coefficients_within_25pc'])} | {last or part(counts['above_limit'])} |")
+            f"{part(counts['coefficients_within_25pc'])} | {last} |")
 
 
 def _current_edge(r: dict) -> bool:
