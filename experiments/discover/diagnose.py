@@ -8,6 +8,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
     python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT  # the held-out prediction per channel, ~2 min
+    python experiments/discover/diagnose.py heldout-swap SET NAME EFFECT  # true masks on the held-out or train frames, ~6 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
     python experiments/discover/diagnose.py lens-masks DIR NAME...     # true masks against the mesh projected through the lens, ~5 s each
@@ -29,6 +30,7 @@ the ``recordings`` extra).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -52,11 +54,17 @@ def _video(folder: Path) -> dv.VideoProblem:
 
 def segmentation(folder: Path) -> dict:
     """Per frame: the segmented mask's centroid minus the true one's (px) and its edge bias
-    (:func:`segmentation_error.measure`), with the edge bias's mean and spread."""
+    (:func:`segmentation_error.measure`), with the edge bias's mean and spread; the true masks'
+    centroid speed (px per frame, central differences) and its correlation with the edge bias
+    (motion blur reads a fast silhouette's size otherwise than a slow one's)."""
     frames = measure(folder)["frames"]
     edge = [r["edge_px"] for r in frames]
+    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    centres = np.array([[np.nonzero(m)[1].mean(), np.nonzero(m)[0].mean()] for m in true])
+    speed = np.hypot(*np.gradient(centres, axis=0).T)
     return {"dx_px": [r["dx"] for r in frames], "dy_px": [r["dy"] for r in frames], "edge_px": edge,
-            "edge_mean": float(np.mean(edge)), "edge_sd": float(np.std(edge))}
+            "edge_mean": float(np.mean(edge)), "edge_sd": float(np.std(edge)), "speed_px": speed.tolist(),
+            "edge_speed_correlation": float(np.corrcoef(edge, speed)[0, 1])}
 
 
 def clock(folder: Path, starts=(1.0135, 1.02)) -> dict:
@@ -248,6 +256,39 @@ def heldout_channels(folder: Path, effect: str) -> dict:
                       "channels": {c: {"rms": float(np.sqrt(np.nanmean((held[c][video.held] / video.noise[c]) ** 2))),
                                        "mean": float(np.nanmean(held[c][video.held] / video.noise[c]))}
                                    for c in CHANNELS}}
+    return out
+
+
+def heldout_swap(folder: Path, effect: str) -> dict:
+    """Whose frames turn a held-out test: the segmented video with the engine's true masks put in
+    place of the segmentation on no frame, on the held-out frames, on the train frames, or on
+    all; each time discover's baseline and its refit with ``effect`` (noise floors re-estimated
+    from each mix, as discover does): held-out RMS in noise floors, the gain, the effect's value
+    fitted on the train frames, and the edge bias there."""
+    from torchfit.run import build_problem
+    from torchfit.video import _boxes
+
+    _, shape, camera = recording_parts(folder)
+    observation, problem, span = load_problem(folder, shape, camera, False)
+    held = span[dv.VideoProblem(problem).held]  # the held-out frames, video frame numbers
+    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    out = {}
+    for label, frames in (("segmented", []), ("true on held-out frames", held),
+                          ("true on train frames", np.setdiff1d(span, held)), ("true", span)):
+        masks = observation.masks.copy()
+        masks[frames] = true[frames]
+        mixed = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
+        video = dv.VideoProblem(build_problem(mixed, shape, camera, g=9.81, dtype=torch.float32,
+                                              device=torch.device("cpu"))[0])
+        base = video.fit((), None)
+        refit = video.fit((effect,), base)
+        out[label] = {"heldout_before": base.heldout_rms, "heldout_after": refit.heldout_rms,
+                      "gain": 1.0 - refit.heldout_rms / base.heldout_rms,
+                      "train_value": {p: float(torch.as_tensor(v).reshape(-1)[0])
+                                      for p, v in refit.payload["held_model"].values[effect].items()},
+                      "train_edge_px": [float(x) for x in refit.payload["held_model"].edge],
+                      "baseline_train_edge_px": [float(x) for x in base.payload["held_model"].edge]}
+        print(label, json.dumps(out[label]), flush=True)
     return out
 
 
@@ -658,7 +699,8 @@ def main(argv: list[str]) -> None:
         file.write_text(json.dumps(result, indent=1))
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
-                "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels, "blur": blur, "stretch": stretch,
+                "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
+                "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
