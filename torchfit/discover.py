@@ -253,8 +253,9 @@ def alone_std(cov: torch.Tensor) -> torch.Tensor:
     fixed, from their (P, P) covariance (the rest of the model marginalised): ``1 / sqrt((C^+)_ii)``.
 
     The size an effect needs to pass is a statement about one parameter moving alone (a lens's
-    k1 with k2 at its null): a pair as correlated as k1 and k2 has marginal errors tens of times
-    larger than either one's alone, and a limit from those would call detectable lenses invisible.
+    k1 with k2 at its null): a pair as correlated as k1 and k2 has marginal errors several times
+    larger than either one's alone (3.2 times on a concealed T-handle's lens), and a limit from
+    those would call detectable lenses invisible.
     Equal to the marginal error for a one-parameter block; inf where the data do not see it.
     """
     precision = torch.linalg.pinv(cov.double(), hermitian=True).diagonal()

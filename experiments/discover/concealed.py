@@ -234,7 +234,7 @@ def below_limit(r: dict) -> bool:
     exact masks; from a segmented run, the video's. Effects of several numbers (a lens's k1 and
     k2, an offset) are never called below their limit: one number per parameter does not say
     whether their combination would pass (and runs before 2026-11-26's eighth session stored
-    marginal limits, which for k1 and k2 are tens of times too large)."""
+    marginal limits, about three times too large for k1 and k2)."""
     if r["right"] or len(r["truth"]) != 1:
         return False
     (effect,) = r["truth"]
@@ -270,17 +270,20 @@ def outcome(r: dict) -> str:
     return OUTCOMES[2] if below_limit(r) else OUTCOMES[3]
 
 
+def _segmented_runs(root: Path, suffix: str) -> dict:
+    """``{set label: {recording: row}}`` of every stored segmented set (``suffix``: a variant's)."""
+    return {label: {r["recording"]: r for r in json.loads(file.read_text())}
+            for label, name in SETS.items() if (file := root / f"{name}{suffix}" / "summary.json").exists()}
+
+
 def outcomes(root: Path = OUT.parent, suffix: str = "") -> str:
     """How each set's effect cases ended on the segmented video (``suffix``: a variant's results,
     e.g. ``_crf4``), a column per :data:`OUTCOMES`, each but the first with its recordings."""
     lines = ["| set | " + " | ".join(OUTCOMES) + " |", "|---" * (len(OUTCOMES) + 1) + "|"]
     totals = [0] * len(OUTCOMES)
-    for label, name in SETS.items():
-        file = root / f"{name}{suffix}" / "summary.json"
-        if not file.exists():
-            continue
+    for label, rows in _segmented_runs(root, suffix).items():
         ended: dict = {kind: [] for kind in OUTCOMES}
-        for r in json.loads(file.read_text()):
+        for r in rows.values():
             if r["truth"]:
                 ended[outcome(r)].append(r["recording"])
         cells = [str(len(v)) + (f" ({', '.join(v)})" if i and v else "") for i, v in enumerate(ended.values())]
@@ -298,8 +301,7 @@ def verdict_grid(root: Path = OUT.parent, suffix: str = "") -> str:
     """Every recording against every set on the segmented video (``suffix``: a variant's
     results), each cell its :func:`outcome` in a word (:data:`GRID_WORDS`; a control's
     "quiet" or "ALARM") and the names discover gave, from the stored runs (no fitting)."""
-    runs = {label: {r["recording"]: r for r in json.loads(file.read_text())}
-            for label, name in SETS.items() if (file := root / f"{name}{suffix}" / "summary.json").exists()}
+    runs = _segmented_runs(root, suffix)
     names = sorted({n for rows in runs.values() for n in rows}, key=lambda n: (n.startswith("control"), n))
     lines = ["| recording | hidden | " + " | ".join(runs) + " |", "|---" * (len(runs) + 2) + "|"]
     for name in names:
