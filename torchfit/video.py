@@ -54,7 +54,7 @@ __all__ = [
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
-_CACHE_VERSION = 3
+_CACHE_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -385,6 +385,38 @@ def _local_shading_coverage(diff: np.ndarray, background: np.ndarray, albedo: np
     return np.where(supported, projected, fallback).astype(np.float32)
 
 
+# Passes that re-estimate the albedo direction from the pixels the previous one calls covered
+ALBEDO_PASSES = 1
+PURE_COVERAGE = 0.9  # ...at least this much (when at least ALBEDO_MIN_PIXELS are)
+ALBEDO_MIN_PIXELS = 10
+
+
+def _pixel_coverage(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """(N,) coverage ``a`` of the per-pixel 2-unknown fit ``D = u A - a B`` (step 3a of the module
+    docstring) for (N, 3) ``D = I - B`` and ``B`` in luma/chroma and a (3,) unit albedo ``A``."""
+    a_dot_b = background @ albedo
+    det = (background**2).sum(-1) - a_dot_b**2
+    return (a_dot_b * (diff @ albedo) - (diff * background).sum(-1)) / np.maximum(det, 1e-6)
+
+
+def _albedo(colours: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
+    """(3,) unit albedo direction: the median direction of (N, 3) object colours in luma/chroma,
+    of those whose ``coverage`` (N,) is at least ``PURE_COVERAGE`` when given and enough are.
+
+    A pixel the object only partly covers mixes in the background's colour: on a blurred or
+    thin object most eroded "object" pixels do (a blurred ball's median coverage there can be
+    0.6), the median direction tilts toward the background, and every edge pixel then reads more
+    coverage than it has (a silhouette too large in proportion to its blur)."""
+    if coverage is not None:
+        pure = coverage >= PURE_COVERAGE
+        if pure.sum() >= ALBEDO_MIN_PIXELS:
+            colours = colours[pure]
+    colours = colours.astype(np.float32)
+    colours = colours / np.maximum(np.linalg.norm(colours, axis=1, keepdims=True), 1e-6)
+    albedo = np.median(colours, axis=0)
+    return albedo / np.linalg.norm(albedo)
+
+
 def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached."""
     background_bgr = _estimate_background(frames, settings)
@@ -414,14 +446,14 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
         core = seeds
     if not core.any():
         return {"masks": seeds, "background": background_bgr, "second_frac": second_frac}
-    colours = frames[core].astype(np.float32)
-    colours /= np.maximum(np.linalg.norm(colours, axis=1, keepdims=True), 1e-6)
-    albedo = np.median(colours, axis=0)
-    albedo /= np.linalg.norm(albedo)
+    b_dot_b = (background**2).sum(-1)
+    _, rows, cols = np.nonzero(core)
+    albedo = _albedo(frames[core], None)
+    for _ in range(ALBEDO_PASSES):
+        albedo = _albedo(frames[core], _pixel_coverage(diff[core], background[rows, cols], albedo))
 
     # Per pixel, D = u A - a B (u = a s): 2x2 normal equations solved in closed form.
     a_dot_b = background @ albedo  # (H, W)
-    b_dot_b = (background**2).sum(-1)
     det = b_dot_b - a_dot_b**2  # |B|^2 sin^2(angle(A, B))
     well_posed = det > 100.0  # |B| sin(angle) > 10 grey levels, else fall back to |D| / contrast
 
