@@ -99,7 +99,8 @@ def test_albedo_from_covered_pixels_leaves_a_blurred_edge_unbiased(monkeypatch, 
     """On a blurred disc most eroded seed pixels are partly covered; an albedo taken from all of
     them tilts toward the background and the per-pixel coverage on the blurred ramp reads high
     (measured +0.08 with no refit pass). Re-estimated from the pixels the first pass calls
-    covered (ALBEDO_PASSES = 1, the default), it is within 0.01 of the exact coverage."""
+    covered (``SegmentationSettings.albedo_passes = 1``; off by default, see its docstring), it is
+    within 0.01 of the exact coverage."""
     import torchfit.video as video
 
     frames, covers = _blurred_disc_frames()
@@ -111,8 +112,7 @@ def test_albedo_from_covered_pixels_leaves_a_blurred_edge_unbiased(monkeypatch, 
         return original(diff, background, albedo, coverage, *rest)
 
     monkeypatch.setattr(video, "_local_shading_coverage", watch)
-    monkeypatch.setattr(video, "ALBEDO_PASSES", passes)
-    video._segment(frames, SegmentationSettings())
+    video._segment(frames, SegmentationSettings(albedo_passes=passes))
     ramp = (covers > 0.05) & (covers < 0.95)
     ramp[:2] = ramp[-2:] = False  # the first and last frames' background median is the weakest
     bias = float((np.array(kept) - covers)[ramp].mean())

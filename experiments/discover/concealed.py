@@ -9,11 +9,13 @@
     python experiments/discover/concealed.py --shutter [--true-masks] # the rolling-shutter set, + rolling_shutter
     python experiments/discover/concealed.py --with rolling_shutter [...] # one more candidate (results/..._with_<name>/)
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
+    python experiments/discover/concealed.py --albedo-passes N [...]  # the albedo from covered pixels (N passes)
     python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
     python experiments/discover/concealed.py --scoreboard --chroma-weight W  # default weight against W, side by side
+    python experiments/discover/concealed.py --scoreboard --albedo-passes N  # the default segmentation against N passes
     python experiments/discover/concealed.py --scoreboard --with NAME  # without and with one more candidate, side by side
     python experiments/discover/concealed.py --scoreboard --edge-px E  # exact masks at EDGE_PX and at E, side by side
     python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
@@ -66,9 +68,10 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
-            candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX) -> dict:
+            candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
-    settings = None if chroma_weight is None else SegmentationSettings(chroma_weight=chroma_weight)
+    changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes)) if v is not None}
+    settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print)
@@ -576,7 +579,7 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
-         crf: int | None = None) -> None:
+         crf: int | None = None, albedo_passes: int | None = None) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
     variant = ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
     # the same set without motion blur or at another H.264 quality (make_concealed.py --sharp, --crf)
@@ -589,6 +592,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
+                            + (f"_albedo{albedo_passes}" if albedo_passes is not None else "")
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant)
     if table_only:
@@ -607,7 +611,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px)
+        content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
+                          albedo_passes)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -632,13 +637,16 @@ if __name__ == "__main__":
                     help="one more candidate besides the defaults (repeatable; results/concealed..._with_<name>/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
                     help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
+    ap.add_argument("--albedo-passes", type=int, metavar="N",
+                    help="segment with this SegmentationSettings.albedo_passes (results/concealed..._albedo<N>/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md); "
                          "with --chroma-weight W the segmented sets at the default weight and at W side by side "
-                         "(results/chroma<W>_side_by_side.md), with --crf C the segmented sets at crf 14 and at C "
+                         "(results/chroma<W>_side_by_side.md), with --albedo-passes N the same for that "
+                         "segmentation (results/albedo<N>_side_by_side.md), with --crf C the segmented sets at crf 14 and at C "
                          "(results/crf<C>_side_by_side.md), with --with NAME the sets with and without that "
                          "candidate (results/with_<NAME>_side_by_side.md), with --edge-px E the exact masks' sets "
                          "at the default edge term and at E (results/edge<E>_side_by_side.md)")
@@ -652,8 +660,11 @@ if __name__ == "__main__":
     if not (args.edge_px >= 0):
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
-                            or args.crf is not None):
-        if args.crf is not None:
+                            or args.crf is not None or args.albedo_passes is not None):
+        if args.albedo_passes is not None:
+            suffix, label = f"_albedo{args.albedo_passes}", f"albedo passes {args.albedo_passes}"
+            text = side_by_side(suffix, label, column="segmentation")
+        elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
             text = side_by_side(suffix, label, column="H.264 quality")
         elif args.chroma_weight is not None:
@@ -693,4 +704,4 @@ if __name__ == "__main__":
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf)
+         args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes)
