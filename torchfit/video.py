@@ -415,8 +415,8 @@ def _albedo(colours: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
     of those whose ``coverage`` (N,) is at least ``PURE_COVERAGE`` when given and enough are.
 
     A pixel the object only partly covers mixes in the background's colour: on a blurred or
-    thin object most eroded "object" pixels do (a blurred ball's median coverage there can be
-    0.6), the median direction tilts toward the background, and every edge pixel then reads more
+    thin object most eroded "object" pixels do (0.57 is their median coverage on the synthetic
+    blurred disc of ``tests/test_video.py``), the median direction tilts toward the background, and every edge pixel then reads more
     coverage than it has (a silhouette too large in proportion to its blur)."""
     if coverage is not None:
         pure = coverage >= PURE_COVERAGE
@@ -457,7 +457,6 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
         core = seeds
     if not core.any():
         return {"masks": seeds, "background": background_bgr, "second_frac": second_frac}
-    b_dot_b = (background**2).sum(-1)
     _, rows, cols = np.nonzero(core)
     albedo = _albedo(frames[core], None)
     for _ in range(settings.albedo_passes):
@@ -465,6 +464,7 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
 
     # Per pixel, D = u A - a B (u = a s): 2x2 normal equations solved in closed form.
     a_dot_b = background @ albedo  # (H, W)
+    b_dot_b = (background**2).sum(-1)
     det = b_dot_b - a_dot_b**2  # |B|^2 sin^2(angle(A, B))
     well_posed = det > 100.0  # |B| sin(angle) > 10 grey levels, else fall back to |D| / contrast
 
