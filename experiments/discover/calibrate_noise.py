@@ -2,6 +2,7 @@
 
     python experiments/discover/calibrate_noise.py [names...]     # ~2-3 min per recording
     python experiments/discover/calibrate_noise.py --true-masks [names...]  # the engine's exact masks
+    python experiments/discover/calibrate_noise.py --albedo-passes N [names...]  # SegmentationSettings.albedo_passes N
 
 For each shipped MuJoCo recording (nothing missing: the model is exact up to segmentation):
 
@@ -36,6 +37,7 @@ from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
 from torchfit.losses import mask_moments
 from torchfit.paper._recording import load_recording
 from torchfit.residuals import CHANNELS, channel_values, noise_floor, systematic_floor
+from torchfit.video import SegmentationSettings
 
 EDGES = (0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
 EXACT_EDGES = (0.1, 0.07, 0.05, 0.04, 0.03, 0.02, 0.01, 0.0)
@@ -55,9 +57,9 @@ def correlation(rec, observation, lags=(1, 2)) -> dict:
     return out
 
 
-def calibrate(name: str, true_masks: bool = False) -> dict:
+def calibrate(name: str, true_masks: bool = False, settings: SegmentationSettings | None = None) -> dict:
     rec = load_recording(name)
-    observation, problem, _ = load_problem(rec.folder, rec.shape, rec.camera, true_masks)
+    observation, problem, _ = load_problem(rec.folder, rec.shape, rec.camera, true_masks, settings)
     video = VideoProblem(problem, candidates=())
     base = video.fit((), None)
     channels = base.payload["channels"]
@@ -78,10 +80,16 @@ def calibrate(name: str, true_masks: bool = False) -> dict:
 if __name__ == "__main__":
     args = sys.argv[1:]
     exact = "--true-masks" in args
-    names = [a for a in args if a != "--true-masks"] or ["tshape", "tshape_intermediate", "box_fast", "cylinder"]
-    OUT = RESULTS / ("noise_calibration_true_masks.json" if exact else "noise_calibration.json")
+    passes = int(args[args.index("--albedo-passes") + 1]) if "--albedo-passes" in args else None
+    if passes is not None and (exact or passes < 0):
+        sys.exit(f"--albedo-passes needs a count >= 0 and segmented masks, got {passes}")
+    flags = {"--true-masks", "--albedo-passes", str(passes)}
+    names = [a for a in args if a not in flags] or ["tshape", "tshape_intermediate", "box_fast", "cylinder"]
+    OUT = RESULTS / ("noise_calibration_true_masks.json" if exact else "noise_calibration"
+                     + (f"_albedo{passes}" if passes is not None else "") + ".json")
+    settings = None if passes is None else SegmentationSettings(albedo_passes=passes)
     for name in names:
-        result = calibrate(name, exact)
+        result = calibrate(name, exact, settings)
         print(name, {e: round(r["chi2_per_obs"], 3) for e, r in result["rows"].items()}, "max over channels",
               {e: round(max(r["per_channel"].values()), 3) for e, r in result["rows"].items()}, flush=True)
         if not exact:
