@@ -424,16 +424,23 @@ class PointsProblem:
         without shared parameters or covariance are left out. An effect's columns are contiguous."""
         if fit.shared_covariance is None:
             return {}
-        spans, nulls, col = {}, {}, fit.model.n_local
+        nulls: dict = {}
         for name, pname, size in fit.model.columns[fit.model._first_effect():]:
-            spans[name] = (spans.get(name, (col,))[0], col + size)
             nulls.setdefault(name, []).append(
                 torch.as_tensor(EFFECTS[name].null_params[pname], dtype=torch.float64).reshape(-1).expand(size))
-            col += size
-        local = fit.model.n_local
+        spans, local = self._spans(fit), fit.model.n_local
         return {name: wald_statistic(fit.params[0, a:b], torch.cat(nulls[name]),
                                      fit.shared_covariance[a - local:b - local, a - local:b - local] * self._variance(fit))
                 for name, (a, b) in spans.items()}
+
+    @staticmethod
+    def _spans(fit: PointFit) -> dict:
+        """``{effect: (first, end)}``: each effect's contiguous columns of ``fit.params``."""
+        spans, col = {}, fit.model.n_local
+        for name, _, size in fit.model.columns[fit.model._first_effect():]:
+            spans[name] = (spans.get(name, (col,))[0], col + size)
+            col += size
+        return spans
 
     def _variance(self, fit: PointFit) -> float:
         """The larger of the estimated noise variance and the residual variance per degree of
@@ -447,19 +454,14 @@ class PointsProblem:
         """
         variance = self._variance(fit)
         out: dict = {}
-        columns = fit.model.columns[fit.model._first_effect():]
-        spans, col = {}, fit.model.n_local  # each effect's contiguous columns
-        for name, _, size in columns:
-            spans[name] = (spans.get(name, (col,))[0], col + size)
-            col += size
-        col = fit.model.n_local
-        for name, pname, size in columns:
+        spans, local = self._spans(fit), fit.model.n_local
+        col = local
+        for name, pname, size in fit.model.columns[fit.model._first_effect():]:
             value = fit.params[0, col:col + size]
             if fit.shared_covariance is not None:
-                start, (a, b) = col - fit.model.n_local, spans[name]
+                start, (a, b) = col - local, spans[name]
                 cov = fit.shared_covariance * variance
                 std = torch.sqrt(torch.diagonal(cov[start:start + size, start:start + size]).clamp(min=0))
-                local = fit.model.n_local
                 alone = alone_std(cov[a - local:b - local, a - local:b - local])[col - a:col - a + size]
             else:
                 std = alone = torch.full((size,), float("nan"), dtype=torch.float64)

@@ -402,12 +402,15 @@ PURE_COVERAGE = 0.9
 ALBEDO_MIN_PIXELS = 10
 
 
-def _pixel_coverage(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray) -> np.ndarray:
-    """(N,) coverage ``a`` of the per-pixel 2-unknown fit ``D = u A - a B`` (step 3a of the module
-    docstring) for (N, 3) ``D = I - B`` and ``B`` in luma/chroma and a (3,) unit albedo ``A``."""
+def _two_unknown(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The per-pixel 2-unknown fit ``D = u A - a B`` (step 3a of the module docstring), its 2x2
+    normal equations solved in closed form: coverage ``a`` and ``u = a s``, each (...,), for
+    (..., 3) ``D = I - B`` and ``B`` in luma/chroma and a (3,) unit albedo ``A``."""
     a_dot_b = background @ albedo
-    det = (background**2).sum(-1) - a_dot_b**2
-    return (a_dot_b * (diff @ albedo) - (diff * background).sum(-1)) / np.maximum(det, 1e-6)
+    b_dot_b = (background**2).sum(-1)
+    det = np.maximum(b_dot_b - a_dot_b**2, 1e-6)  # |B|^2 sin^2(angle(A, B))
+    d_dot_a, d_dot_b = diff @ albedo, (diff * background).sum(-1)
+    return (a_dot_b * d_dot_a - d_dot_b) / det, (b_dot_b * d_dot_a - a_dot_b * d_dot_b) / det
 
 
 def _albedo(colours: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
@@ -458,28 +461,23 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     if not core.any():
         return {"masks": seeds, "background": background_bgr, "second_frac": second_frac}
     _, rows, cols = np.nonzero(core)
-    albedo = _albedo(frames[core], None)
+    colours = frames[core]
+    albedo = _albedo(colours, None)
     for _ in range(settings.albedo_passes):
-        albedo = _albedo(frames[core], _pixel_coverage(diff[core], background[rows, cols], albedo))
+        albedo = _albedo(colours, _two_unknown(diff[core], background[rows, cols], albedo)[0])
 
-    # Per pixel, D = u A - a B (u = a s): 2x2 normal equations solved in closed form.
-    a_dot_b = background @ albedo  # (H, W)
-    b_dot_b = (background**2).sum(-1)
-    det = b_dot_b - a_dot_b**2  # |B|^2 sin^2(angle(A, B))
-    well_posed = det > 100.0  # |B| sin(angle) > 10 grey levels, else fall back to |D| / contrast
+    # |B| sin(angle(A, B)) > 10 grey levels, else the coverage falls back to |D| / contrast
+    well_posed = (background**2).sum(-1) - (background @ albedo) ** 2 > 100.0
 
     region = _morph(seeds, "dilation", 2 * settings.morph_radius + 1)
     masks = np.zeros_like(seeds)
     for t in range(len(frames)):
         if not seeds[t].any():
             continue
-        d_dot_a = diff[t] @ albedo
-        d_dot_b = (diff[t] * background).sum(-1)
-        coverage = (a_dot_b * d_dot_a - d_dot_b) / np.maximum(det, 1e-6)
+        coverage, shaded = _two_unknown(diff[t], background, albedo)  # u = a s
         contrast = float(np.percentile(magnitude[t][seeds[t]], 90))
         fallback = np.where(well_posed, coverage, magnitude[t] / max(contrast, 1e-6))
         if settings.shading_radius > 0:
-            shaded = (b_dot_b * d_dot_a - a_dot_b * d_dot_b) / np.maximum(det, 1e-6)  # u = a s
             weight = well_posed & region[t] & (coverage > 0.05)
             coverage = _local_shading_coverage(diff[t], background, albedo, coverage, shaded,
                                                weight, fallback, settings.shading_radius)

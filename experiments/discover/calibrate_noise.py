@@ -25,8 +25,8 @@ results/noise_calibration_true_masks.json (no autocorrelation: there is no segme
 
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -78,13 +78,14 @@ def calibrate(name: str, true_masks: bool = False, settings: SegmentationSetting
 
 
 if __name__ == "__main__":
-    args = sys.argv[1:]
-    exact = "--true-masks" in args
-    passes = int(args[args.index("--albedo-passes") + 1]) if "--albedo-passes" in args else None
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("names", nargs="*", default=["tshape", "tshape_intermediate", "box_fast", "cylinder"])
+    ap.add_argument("--true-masks", action="store_true", help="the engine's exact masks instead of the segmentation")
+    ap.add_argument("--albedo-passes", type=int, metavar="N", help="segment with SegmentationSettings.albedo_passes N")
+    args = ap.parse_args()
+    exact, passes, names = args.true_masks, args.albedo_passes, args.names
     if passes is not None and (exact or passes < 0):
-        sys.exit(f"--albedo-passes needs a count >= 0 and segmented masks, got {passes}")
-    flags = {"--true-masks", "--albedo-passes", str(passes)}
-    names = [a for a in args if a not in flags] or ["tshape", "tshape_intermediate", "box_fast", "cylinder"]
+        ap.error(f"--albedo-passes needs a count >= 0 and segmented masks, got {passes}")
     OUT = RESULTS / ("noise_calibration_true_masks.json" if exact else "noise_calibration"
                      + (f"_albedo{passes}" if passes is not None else "") + ".json")
     settings = None if passes is None else SegmentationSettings(albedo_passes=passes)

@@ -30,7 +30,6 @@ the ``recordings`` extra).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import sys
 import time
@@ -38,8 +37,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from segmentation_error import frame_errors, measure, segment_watching
-from true_masks import load_problem, recording_parts
+from segmentation_error import frame_errors, mask_centroids, measure, segment_watching
+from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
 
@@ -60,8 +59,7 @@ def segmentation(folder: Path) -> dict:
     frames = measure(folder)["frames"]
     edge = [r["edge_px"] for r in frames]
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
-    centres = np.array([[np.nonzero(m)[1].mean(), np.nonzero(m)[0].mean()] for m in true])
-    speed = np.hypot(*np.gradient(centres, axis=0).T)
+    speed = np.hypot(*np.gradient(mask_centroids(true), axis=0).T)
     return {"dx_px": [r["dx"] for r in frames], "dy_px": [r["dy"] for r in frames], "edge_px": edge,
             "edge_mean": float(np.mean(edge)), "edge_sd": float(np.std(edge)), "speed_px": speed.tolist(),
             "edge_speed_correlation": float(np.corrcoef(edge, speed)[0, 1])}
@@ -265,9 +263,6 @@ def heldout_swap(folder: Path, effect: str) -> dict:
     all; each time discover's baseline and its refit with ``effect`` (noise floors re-estimated
     from each mix, as discover does): held-out RMS in noise floors, the gain, the effect's value
     fitted on the train frames, and the edge bias there."""
-    from torchfit.run import build_problem
-    from torchfit.video import _boxes
-
     _, shape, camera = recording_parts(folder)
     observation, problem, span = load_problem(folder, shape, camera, False)
     held = span[dv.VideoProblem(problem).held]  # the held-out frames, video frame numbers
@@ -277,9 +272,7 @@ def heldout_swap(folder: Path, effect: str) -> dict:
                           ("true on train frames", np.setdiff1d(span, held)), ("true", span)):
         masks = observation.masks.copy()
         masks[frames] = true[frames]
-        mixed = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
-        video = dv.VideoProblem(build_problem(mixed, shape, camera, g=9.81, dtype=torch.float32,
-                                              device=torch.device("cpu"))[0])
+        video = dv.VideoProblem(problem_of(with_masks(observation, masks), shape, camera)[0])
         base = video.fit((), None)
         refit = video.fit((effect,), base)
         out[label] = {"heldout_before": base.heldout_rms, "heldout_after": refit.heldout_rms,

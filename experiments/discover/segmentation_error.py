@@ -58,14 +58,16 @@ def segment_watching(folder: Path, hook: str, keep,
     return segmented, kept, true
 
 
+def mask_centroids(masks: np.ndarray) -> np.ndarray:
+    """(T, 2) centroids (x, y), pixels, of (T, H, W) bool masks (each non-empty)."""
+    return np.array([[xs.mean(), ys.mean()] for ys, xs in (np.nonzero(m) for m in masks)])
+
+
 def frame_errors(segmented: np.ndarray, true: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(T,) each: the segmented mask's centroid minus the true one's, x and y (px), and its edge
     bias (area difference over the true outline's 4-connected length, px), from (T, H, W) bool
     segmented and true masks."""
-    def centroids(masks: np.ndarray) -> np.ndarray:
-        return np.array([[xs.mean(), ys.mean()] for ys, xs in (np.nonzero(m) for m in masks)])
-
-    delta = centroids(segmented) - centroids(true)
+    delta = mask_centroids(segmented) - mask_centroids(true)
     edge = (segmented.sum((1, 2)) - true.sum((1, 2))) / outline(true).sum((1, 2))
     return delta[:, 0], delta[:, 1], edge
 

@@ -44,10 +44,18 @@ def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings
     (``masks.npz``) in place of the segmentation."""
     observation = load_observation(str(folder / "video.mp4"), camera=camera, settings=settings)
     if true_masks:
-        masks = np.load(folder / "masks.npz")["masks"].astype(bool)
-        observation = dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
-    problem, span = build_problem(observation, shape, camera, g=9.81, dtype=torch.float32, device=torch.device("cpu"))
-    return observation, problem, span
+        observation = with_masks(observation, np.load(folder / "masks.npz")["masks"].astype(bool))
+    return (observation, *problem_of(observation, shape, camera))
+
+
+def with_masks(observation, masks: np.ndarray):
+    """``observation`` with (T, H, W) bool ``masks`` (and their boxes) in place of its own."""
+    return dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
+
+
+def problem_of(observation, shape, camera: Camera):
+    """The fit problem (float32, CPU) of an observation, and its span of frames."""
+    return build_problem(observation, shape, camera, g=9.81, dtype=torch.float32, device=torch.device("cpu"))
 
 
 def main(target: str, effects: tuple[str, ...], segmented: bool) -> None:
