@@ -173,3 +173,14 @@ def test_configs_resolve_outside_the_checkout(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     video = [line.split(":", 1)[1].strip() for line in proc.stdout.splitlines() if line.strip().startswith("video:")]
     assert video and Path(video[0]).is_file()
+
+
+def test_segmentation_settings_come_from_the_config():
+    from omegaconf import OmegaConf
+
+    from torchfit.run import ConfigError, _segmentation_settings
+
+    settings = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "bt709"}))
+    assert settings.transfer == "bt709" and settings.method == "median"
+    with pytest.raises(ConfigError, match="data.segmentation: transfer must be one of"):
+        _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "gamma"}))

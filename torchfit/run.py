@@ -67,6 +67,14 @@ class ConfigError(ValueError):
     """A configuration value that cannot be used; the message names the key."""
 
 
+def _segmentation_settings(node) -> SegmentationSettings:
+    """``data.segmentation`` (method, transfer) as :class:`SegmentationSettings`."""
+    try:
+        return SegmentationSettings(method=str(node.method), transfer=str(node.get("transfer", "linear")))
+    except ValueError as err:
+        raise ConfigError(f"data.segmentation: {err}") from None
+
+
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when present, CPU otherwise."""
     if name == "auto":
@@ -315,7 +323,7 @@ def run_fit(cfg: DictConfig, out_dir: Path) -> dict:
         str(data.video), shape, camera, _search_settings(cfg.search), fps=data.fps, g=float(cfg.dynamics.g),
         start=int(data.start), stop=data.stop, kind=str(data.kind), truth=data.truth,
         cache_dir=(out_dir / "cache") if data.cache else None,
-        segmentation=SegmentationSettings(method=str(data.segmentation.method)),
+        segmentation=_segmentation_settings(data.segmentation),
         dtype=ctx["dtype"], device=ctx["device"], progress=ctx["progress"])
     if cfg.outputs.plots:  # a glance at whether segmentation worked
         contact_sheet(fitted.observation, None, out_dir / "contact_sheet.png")
@@ -401,7 +409,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
                                    start=int(data.start), stop=data.stop,
                                    cache_dir=(out_dir / "cache") if data.cache else None,
-                                   settings=SegmentationSettings(method=str(data.segmentation.method)))
+                                   settings=_segmentation_settings(data.segmentation))
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
                                   device=ctx["device"])
     truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None
