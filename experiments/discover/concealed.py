@@ -12,6 +12,7 @@
     python experiments/discover/concealed.py --albedo-passes N [...]  # the albedo from covered pixels (N passes)
     python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
+    python experiments/discover/concealed.py --transfer T [--read-as R] [...] # the set stored through camera curve T (make_concealed.py --transfer T), segmented as T (or as R)
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
     python experiments/discover/concealed.py --scoreboard --chroma-weight W  # default weight against W, side by side
@@ -58,7 +59,7 @@ from torchfit.discover_video import (
 )
 from torchfit.effects import EFFECTS
 from torchfit.shape import load_shape
-from torchfit.video import SegmentationSettings
+from torchfit.video import TRANSFERS, SegmentationSettings
 
 HERE = Path(__file__).resolve().parent  # also holds true_masks.py (load_problem)
 RECORDINGS = HERE / "recordings"
@@ -68,9 +69,11 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
-            candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None) -> dict:
+            candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
+            transfer: str | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
-    changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes)) if v is not None}
+    changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
+                                 ("transfer", transfer)) if v is not None}
     settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
@@ -579,9 +582,10 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
 def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
-         crf: int | None = None, albedo_passes: int | None = None) -> None:
+         crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
+         read_as: str | None = None) -> None:
     recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
-    variant = ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
+    variant = ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "") + (f"_{transfer}" if transfer else "")
     # the same set without motion blur or at another H.264 quality (make_concealed.py --sharp, --crf)
     recordings = recordings.with_name(recordings.name + variant)
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
@@ -594,7 +598,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + (f"_albedo{albedo_passes}" if albedo_passes is not None else "")
                             + "".join(f"_with_{name}" for name in extra)
-                            + edge_suffix(edge_px) + variant)
+                            + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -605,14 +609,15 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     elif not recordings.exists():
         sys.exit(f"no recordings in {recordings}: run python experiments/discover/make_concealed.py"
                  + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else "")
-                 + (" --sharp" if sharp else "") + (f" --crf {crf}" if crf is not None else ""))
+                 + (" --sharp" if sharp else "") + (f" --crf {crf}" if crf is not None else "")
+                 + (f" --transfer {transfer}" if transfer else ""))
     else:
         folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
-                          albedo_passes)
+                          albedo_passes, read_as or transfer)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -633,6 +638,12 @@ if __name__ == "__main__":
                     help="the set remade without motion blur (make_concealed.py --sharp; results/..._sharp/)")
     ap.add_argument("--crf", type=int, default=None, metavar="C",
                     help="the set encoded at H.264 quality C (make_concealed.py --crf C; results/..._crf<C>/)")
+    ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
+                    help="the set stored through this camera curve (make_concealed.py --transfer T), segmented "
+                         "with SegmentationSettings.transfer T (results/..._<T>/)")
+    ap.add_argument("--read-as", choices=TRANSFERS, default=None,
+                    help="with --transfer: segment as if the frames were stored through this curve instead "
+                         "(results/..._<T>_read_<R>/)")
     ap.add_argument("--with", dest="extra", action="append", default=[], choices=sorted(set(VIDEO_EFFECTS) - set(CANDIDATES)),
                     help="one more candidate besides the defaults (repeatable; results/concealed..._with_<name>/)")
     ap.add_argument("--chroma-weight", type=float, metavar="W",
@@ -703,5 +714,9 @@ if __name__ == "__main__":
         ap.error("--crf is a concealed set at another H.264 quality: not with --shutter, --shipped or --sharp")
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
+    if (args.transfer and (args.shutter or args.shipped or args.true_masks)) or (args.read_as and not args.transfer):
+        ap.error("--transfer is a segmented concealed set stored through a camera curve (not with --shutter, "
+                 "--shipped or --true-masks); --read-as only with --transfer")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes)
+         args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
+         args.read_as)

@@ -232,6 +232,9 @@ def main(argv=None) -> int:
                     help="without motion blur (one render per frame), in recordings[_fresh<K>]_sharp/")
     ap.add_argument("--crf", type=int, default=None, metavar="C",
                     help="H.264 constant rate factor C (0-51) instead of 14, in recordings[_fresh<K>]_crf<C>/")
+    ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
+                    help="store the frames through this camera curve (the light summed first), in "
+                         "recordings[_fresh<K>]_<curve>/ (segment with SegmentationSettings.transfer)")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -248,6 +251,10 @@ def main(argv=None) -> int:
         specs = [(s.replace(crf=args.crf), what) for s, what in specs]
     if args.sharp:
         specs = [(sharp_spec(s), what) for s, what in specs]
+    if args.transfer is not None:
+        if args.shutter:
+            raise SystemExit("--transfer makes a concealed set: not with --shutter")
+        specs = [(s.replace(transfer=args.transfer), what) for s, what in specs]
     if args.list:
         for s, what in specs:
             print(f"{s.name:18s} {what}")
@@ -258,7 +265,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf))
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)
@@ -287,11 +294,12 @@ def main(argv=None) -> int:
     return 0
 
 
-def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None) -> Path:
+def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None, transfer: str | None = None) -> Path:
     """Where set ``fresh`` lives by default (0: the first set; ``sharp``: its copy without motion blur;
-    ``crf``: its copy encoded at that H.264 quality)."""
+    ``crf``: its copy encoded at that H.264 quality; ``transfer``: its copy stored through that curve)."""
     folder = DEFAULT_OUT.with_name(f"recordings_fresh{fresh}") if fresh else DEFAULT_OUT
-    return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else ""))
+    return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
+                            + (f"_{transfer}" if transfer else ""))
 
 
 def sharp_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:

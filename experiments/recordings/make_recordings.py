@@ -111,6 +111,11 @@ class RecordingSpec:
     codec: str = "h264"  # "h264" (libx264 through PyAV, yuv420p like a phone), "h264_444" (yuv444p: colour
     # at full resolution), "h264rgb" or an OpenCV fourcc
     crf: int = 14  # H.264 constant rate factor (lower = better; phones record at roughly 14-20)
+    # how the stored values encode the light: "linear" stores the render's values as they are
+    # (the blur's sub-frames, the noise and the pixels' partial coverage mixed in them, as before);
+    # "srgb" / "bt709" take the render's values as light, sum them as a sensor does and store
+    # the sum through that curve (torchfit.video.TRANSFERS; SegmentationSettings.transfer reads it)
+    transfer: str = "linear"
     shadows: bool = False
     scene_seed: int = 0  # background texture
     # physics
@@ -835,6 +840,19 @@ class VideoWriter:
         self.container.close()
 
 
+def encode(light: np.ndarray, transfer: str) -> np.ndarray:
+    """Light on a 0..255 scale stored through the camera curve ``transfer`` (0..255, not
+    rounded); the inverse of ``torchfit.video._decode``."""
+    if transfer == "linear":
+        return light
+    x = np.clip(light / 255.0, 0.0, 1.0)
+    if transfer == "srgb":
+        return 255.0 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+    if transfer == "bt709":
+        return 255.0 * np.where(x < 0.018, 4.5 * x, 1.099 * x**0.45 - 0.099)
+    raise ValueError(f"transfer must be linear, srgb or bt709, got {transfer!r}")
+
+
 def sample_times(spec: RecordingSpec):
     """Frame times and, per frame, the blur sub-frame times (centred on the frame)."""
     tf = np.arange(spec.n_frames) / spec.fps
@@ -985,7 +1003,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
                 acc = cv2.remap(acc.astype(np.float32), maps[0], maps[1], cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_REPLICATE).astype(np.float64)
             img = acc / K + rng.normal(scale=spec.noise_sigma * 255.0, size=acc.shape)
-            img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+            img = np.clip(np.round(encode(img, spec.transfer)), 0, 255).astype(np.uint8)
             writer.write(img)
             # true mask + pose at the frame time
             set_qpos(qp)
@@ -1064,6 +1082,7 @@ def make_recording(spec: RecordingSpec, out_dir, verbose: bool = True) -> dict:
             "blur_subframes": int(K),
             "exposure_frac": float(spec.exposure),
             "noise_sigma": float(spec.noise_sigma),
+            "transfer": spec.transfer,
             "codec": (f"h264 ({', '.join(VideoWriter.H264[spec.codec][:2])}, crf {spec.crf})"
                       if spec.codec in VideoWriter.H264 else spec.codec),
             "engine": f"MuJoCo {mj.__version__} (physics RK4 dt={spec.timestep:g}, OpenGL render)",
