@@ -70,7 +70,7 @@ class ConfigError(ValueError):
 def _segmentation_settings(node) -> SegmentationSettings:
     """``data.segmentation`` (method, transfer) as :class:`SegmentationSettings`."""
     try:
-        return SegmentationSettings(method=str(node.method), transfer=str(node.get("transfer", "linear")))
+        return SegmentationSettings(method=str(node.method), transfer=str(node.transfer))
     except ValueError as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 

@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from true_masks import load_problem, recording_parts
+from true_masks import fresh_folder, load_problem, recording_parts
 
 import torchfit
 from torchfit.discover import without_weakest_block
@@ -584,10 +584,9 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
          read_as: str | None = None) -> None:
-    recordings = RECORDINGS.with_name(f"recordings_fresh{fresh}") if fresh else RECORDINGS
-    variant = ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "") + (f"_{transfer}" if transfer else "")
-    # the same set without motion blur or at another H.264 quality (make_concealed.py --sharp, --crf)
-    recordings = recordings.with_name(recordings.name + variant)
+    # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
+    recordings = fresh_folder(fresh, sharp, crf, transfer)
+    variant = recordings.name.removeprefix(fresh_folder(fresh).name)
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
         out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"])

@@ -38,8 +38,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "recordings"))
 import make_recordings as mr
+from true_masks import fresh_folder
 
-DEFAULT_OUT = HERE / "recordings"
 SHUTTER_OUT = HERE / "recordings_shutter"
 
 # Aerodynamics: MuJoCo's ellipsoid fluid model on an invisible massless sphere of the shape's
@@ -292,14 +292,6 @@ def main(argv=None) -> int:
             print(f"{r['name']:18s} {r['last_px']:6.1f} px (worst {r['max_px']:5.1f})  "
                   f"r={r['object_radius_px']:3.0f} px  {eff}")
     return 0
-
-
-def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None, transfer: str | None = None) -> Path:
-    """Where set ``fresh`` lives by default (0: the first set; ``sharp``: its copy without motion blur;
-    ``crf``: its copy encoded at that H.264 quality; ``transfer``: its copy stored through that curve)."""
-    folder = DEFAULT_OUT.with_name(f"recordings_fresh{fresh}") if fresh else DEFAULT_OUT
-    return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
-                            + (f"_{transfer}" if transfer else ""))
 
 
 def sharp_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:
