@@ -182,5 +182,7 @@ def test_segmentation_settings_come_from_the_config():
 
     settings = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "bt709"}))
     assert settings.transfer == "bt709" and settings.method == "median"
+    default = OmegaConf.load(Path(__file__).parents[1] / "torchfit" / "configs" / "data" / "default.yaml")
+    assert _segmentation_settings(default.segmentation).transfer == "auto"  # the curve the file names
     with pytest.raises(ConfigError, match="data.segmentation: transfer must be one of"):
         _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "gamma"}))

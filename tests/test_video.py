@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import zlib
 from pathlib import Path
 
 import cv2
@@ -13,11 +14,15 @@ from torchfit.video import (
     Observation,
     SegmentationSettings,
     _decode,
+    _h264_sps_transfer,
+    _iso_boxes,
+    _read_moov,
     _segment,
     _undistort,
     contact_sheet,
     load_observation,
     read_frames,
+    stored_transfer,
 )
 
 DATA = Path(__file__).resolve().parents[1] / "torchfit" / "recordings"
@@ -149,13 +154,158 @@ def test_decode_inverts_the_encoding_curves():
     light = np.linspace(0.0, 1.0, 11)
     srgb = np.where(light <= 0.0031308, 12.92 * light, 1.055 * light ** (1 / 2.4) - 0.055)
     bt709 = np.where(light < 0.018, 4.5 * light, 1.099 * light**0.45 - 0.099)
-    for transfer, encoded in (("srgb", srgb), ("bt709", bt709)):
+    a, b, c = 0.17883277, 0.28466892, 0.55991073  # BT.2100 hybrid log-gamma
+    hlg = np.where(light <= 1 / 12, np.sqrt(3 * light), a * np.log(np.maximum(12 * light - b, 1e-12)) + c)
+    for transfer, encoded in (("srgb", srgb), ("bt709", bt709), ("hlg", hlg)):
         assert np.allclose(_decode(255.0 * encoded, transfer), 255.0 * light, atol=1e-3)
         table = _decode(np.arange(256, dtype=np.uint8), transfer)  # the uint8 table, same curve
         assert np.allclose(table, _decode(np.arange(256, dtype=np.float64), transfer))
-    assert np.array_equal(_decode(np.arange(256, dtype=np.uint8), "linear"), np.arange(256))
+    for as_is in ("linear", "auto"):  # "auto" without a file to name a curve: the values as they are
+        assert np.array_equal(_decode(np.arange(256, dtype=np.uint8), as_is), np.arange(256))
     with pytest.raises(ValueError, match="transfer"):
         SegmentationSettings(transfer="gamma")
+
+
+def _box(kind: bytes, payload: bytes) -> bytes:
+    return (8 + len(payload)).to_bytes(4, "big") + kind + payload
+
+
+def _mp4(children: bytes) -> bytes:
+    """A minimal MP4: ftyp, media data, then moov/trak/mdia/minf/stbl/stsd with one 'avc1' sample
+    entry (78 header bytes) holding ``children`` boxes."""
+    entry = _box(b"avc1", bytes(78) + children)
+    stsd = _box(b"stsd", bytes(4) + (1).to_bytes(4, "big") + entry)
+    moov = _box(b"moov", _box(b"trak", _box(b"mdia", _box(b"minf", _box(b"stbl", stsd)))))
+    return _box(b"ftyp", b"isom" + bytes(4)) + _box(b"mdat", bytes(64)) + moov
+
+
+def _colr(transfer: int, kind: bytes = b"nclx") -> bytes:
+    return _box(b"colr", kind + (1).to_bytes(2, "big") + transfer.to_bytes(2, "big") + (1).to_bytes(2, "big")
+                + (b"\0" if kind == b"nclx" else b""))
+
+
+def _sps(transfer: int | None) -> bytes:
+    """An H.264 High-profile sequence parameter set NAL (emulation prevention applied) whose VUI
+    names ``transfer``, or that has no VUI (None)."""
+    fields = []
+
+    def u(value, n):
+        fields.append(format(value, f"0{n}b") if n else "")
+
+    def ue(value):
+        code = format(value + 1, "b")
+        fields.append("0" * (len(code) - 1) + code)
+
+    u(100, 8), u(0, 8), u(40, 8), ue(0)  # profile High, constraints, level, sps id
+    ue(1), ue(0), ue(0), u(0, 1), u(0, 1)  # 4:2:0, 8-bit, 8-bit, no bypass, no scaling matrix
+    ue(0), ue(0), ue(2), ue(4), u(0, 1), ue(39), ue(29), u(1, 1), u(1, 1), u(0, 1)
+    u(transfer is not None, 1)  # vui_parameters_present
+    if transfer is not None:
+        u(0, 1), u(0, 1), u(1, 1), u(5, 3), u(0, 1), u(1, 1), u(1, 8), u(transfer, 8), u(1, 8)
+    bits = "".join(fields) + "1"
+    raw = int(bits.ljust(-(-len(bits) // 8) * 8, "0"), 2).to_bytes(-(-len(bits) // 8), "big")
+    nal, zeros = bytearray([0x67]), 0
+    for byte in raw:
+        if zeros >= 2 and byte <= 3:
+            nal.append(3)
+            zeros = 0
+        nal.append(byte)
+        zeros = zeros + 1 if byte == 0 else 0
+    return bytes(nal)
+
+
+def _avcc(sps: bytes) -> bytes:
+    return _box(b"avcC", bytes([1, 100, 0, 40, 0xFF, 0xE1]) + len(sps).to_bytes(2, "big") + sps)
+
+
+@pytest.mark.parametrize("children, expected", [
+    (_colr(1), "bt709"), (_colr(1, b"nclc"), "bt709"), (_colr(13), "srgb"), (_colr(18), "hlg"),
+    (_colr(8), "linear"), (_colr(2), "linear"), (_avcc(_sps(1)), "bt709"), (_avcc(_sps(13)), "srgb"),
+    (_avcc(_sps(None)), "linear"), (_colr(13) + _avcc(_sps(1)), "srgb"), (b"", "linear")])
+def test_stored_transfer_reads_an_mp4_colour_tag(tmp_path, children, expected):
+    """The curve a file names: its sample entry's 'colr' box, else its H.264 VUI; none named is
+    read as linear (torchfit's own recordings name none)."""
+    path = tmp_path / "clip.mp4"
+    path.write_bytes(_mp4(children))
+    transfer, note = stored_transfer(path)
+    assert transfer == expected, note
+    assert ("no transfer curve named" in note) == (children in (_colr(2), _avcc(_sps(None)), b""))
+
+
+def test_stored_transfer_refuses_a_curve_it_cannot_decode(tmp_path):
+    path = tmp_path / "hdr.mov"
+    path.write_bytes(_mp4(_colr(16)))
+    with pytest.raises(ValueError, match=r"transfer 16 \(PQ"):
+        stored_transfer(path)
+
+
+def test_stored_transfer_on_real_encoder_output():
+    """libx264's own parameter sets, read through the same path: a file tagged sRGB by FFmpeg
+    (tests/data/tagged_srgb.mp4, 16 x 16, made with PyAV, color_trc 13) in its 'colr' box and in its
+    VUI; the shipped recordings name no curve and are read as linear."""
+    tagged = Path(__file__).parent / "data" / "tagged_srgb.mp4"
+    assert stored_transfer(tagged)[0] == "srgb"
+    for path, code in ((tagged, 13), (DATA / "tshape" / "video.mp4", None)):
+        boxes = dict(_iso_boxes(_read_moov(path)))
+        for kind in (b"trak", b"mdia", b"minf", b"stbl"):
+            boxes = dict(_iso_boxes(boxes[kind]))
+        avcc = dict(_iso_boxes(dict(_iso_boxes(boxes[b"stsd"][8:]))[b"avc1"][78:]))[b"avcC"]
+        assert _h264_sps_transfer(avcc[8:8 + int.from_bytes(avcc[6:8], "big")]) == code
+    transfer, note = stored_transfer(DATA / "tshape" / "video.mp4")
+    assert transfer == "linear" and "no transfer curve named (H.264 stream's VUI)" in note
+
+
+def _tag_png(path: Path, chunk: bytes | None) -> Path:
+    """Insert ``chunk`` (type + data) after a PNG file's header chunk."""
+    if chunk is not None:
+        data = path.read_bytes()
+        end = 8 + 12 + int.from_bytes(data[8:12], "big")  # past the signature and IHDR
+        block = (len(chunk) - 4).to_bytes(4, "big") + chunk + zlib.crc32(chunk).to_bytes(4, "big")
+        path.write_bytes(data[:end] + block + data[end:])
+    return path
+
+
+def _png_with(chunk: bytes | None, path: Path) -> Path:
+    """A 4 x 4 grey PNG with ``chunk`` inserted after its header chunk."""
+    cv2.imwrite(str(path), np.full((4, 4, 3), 128, np.uint8))
+    return _tag_png(path, chunk)
+
+
+def test_stored_transfer_reads_image_folders(tmp_path):
+    cases = {"srgb": (b"sRGB\0", "srgb"), "cicp": (b"cICP" + bytes([1, 18, 0, 1]), "hlg"),
+             "linear": (b"gAMA" + (100000).to_bytes(4, "big"), "linear"),
+             "gamma22": (b"gAMA" + (45455).to_bytes(4, "big"), "srgb"), "none": (None, "linear")}
+    for name, (chunk, expected) in cases.items():
+        (tmp_path / name).mkdir()
+        _png_with(chunk, tmp_path / name / "000.png")
+        assert stored_transfer(tmp_path / name)[0] == expected, name
+    (tmp_path / "odd").mkdir()
+    _png_with(b"gAMA" + (50000).to_bytes(4, "big"), tmp_path / "odd" / "000.png")
+    with pytest.raises(ValueError, match="gAMA"):
+        stored_transfer(tmp_path / "odd")
+    (tmp_path / "jpeg").mkdir()
+    cv2.imwrite(str(tmp_path / "jpeg" / "000.jpg"), np.full((4, 4, 3), 128, np.uint8))
+    assert stored_transfer(tmp_path / "jpeg") == ("srgb", "000.jpg: JPEG stores sRGB")
+
+
+def test_auto_transfer_decodes_what_the_file_names(tmp_path):
+    """``transfer="auto"`` (the default): an image folder whose PNGs carry an sRGB chunk is segmented
+    as ``transfer="srgb"`` (the same masks), the observation says so; the same frames without the
+    chunk are read as linear."""
+    frames, _ = _blurred_disc_frames(frames=8, blur_px=8.0, colour=(40.0, 40.0, 40.0),
+                                     background=(170.0, 180.0, 200.0), transfer="srgb")
+    for tagged in (True, False):
+        folder = tmp_path / f"tagged_{tagged}"
+        folder.mkdir()
+        for i, frame in enumerate(frames):
+            cv2.imwrite(str(folder / f"{i:03d}.png"), frame)
+            _tag_png(folder / f"{i:03d}.png", b"sRGB\0" if tagged else None)
+        observation = load_observation(folder, fps=30.0)
+        expected = "srgb" if tagged else "linear"
+        assert observation.transfer == expected, observation.transfer_note
+        explicit = load_observation(folder, fps=30.0, settings=SegmentationSettings(transfer=expected))
+        assert np.array_equal(observation.masks, explicit.masks)
+    assert "sRGB chunk" in load_observation(tmp_path / "tagged_True", fps=30.0).transfer_note
 
 
 def _two_face_scene(frames=15, height=60, width=200, seed=0):

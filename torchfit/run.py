@@ -265,6 +265,8 @@ def fit_recording(video: str | Path, shape: Shape, camera: Camera, settings: Sea
     if progress is not None:
         progress(f"recording: {len(observation.masks)} frames at {observation.fps:g} fps, "
                  f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
+        if observation.transfer_note:
+            progress(f"pixel values: {observation.transfer_note}")
     problem, span = build_problem(observation, shape, camera, g=g, dtype=dtype, device=torch.device(device))
     clock = time.perf_counter()
     result = fit(problem, settings, progress=progress)
@@ -410,6 +412,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                                    start=int(data.start), stop=data.stop,
                                    cache_dir=(out_dir / "cache") if data.cache else None,
                                    settings=_segmentation_settings(data.segmentation))
+    if observation.transfer_note:
+        ctx["progress"](f"pixel values: {observation.transfer_note}")
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
                                   device=ctx["device"])
     truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None

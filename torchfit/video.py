@@ -36,7 +36,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -51,6 +51,7 @@ __all__ = [
     "SegmentationSettings",
     "load_observation",
     "read_frames",
+    "stored_transfer",
     "contact_sheet",
     "BACKGROUND_METHODS",
 ]
@@ -58,7 +59,7 @@ __all__ = [
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
-TRANSFERS = ("linear", "srgb", "bt709")
+TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 _CACHE_VERSION = 4
 
 
@@ -80,13 +81,16 @@ class SegmentationSettings:
         transfer: how the recording's pixel values encode light, one of ``TRANSFERS``. The
             mixing model ``I = a F + (1 - a) B`` of an edge pixel (partial coverage, motion blur)
             holds in light, which a camera sums before it encodes the sum: ``"srgb"`` (the
-            piecewise sRGB curve) and ``"bt709"`` (the BT.709 camera curve of most phone and
-            camera video) decode each value to linear light first (scaled to 0..255);
-            ``"linear"`` (the default) takes the values as they are, right for footage that is
-            linear or was mixed in its stored values, as torchfit's and the experiments'
-            generated recordings are. On encoded footage ``"linear"`` misreads a blurred edge's
-            coverage (a dark disc on a light background read -0.14 too little on its ramp,
-            ``tests/test_video.py``), so its outline moves with its speed.
+            piecewise sRGB curve), ``"bt709"`` (the BT.709 camera curve of most phone and
+            camera video) and ``"hlg"`` (hybrid log-gamma, phones' HDR video) decode each value
+            to linear light first (scaled to 0..255); ``"linear"`` takes the values as they are,
+            right for footage that is linear or was mixed in its stored values, as torchfit's
+            and the experiments' generated recordings are. ``"auto"`` (the default) takes the
+            curve the file names (:func:`stored_transfer`: an MP4/MOV file's colour tag, a PNG's
+            colour chunks; JPEG is sRGB) and ``"linear"`` where it names none. On encoded
+            footage ``"linear"`` misreads a blurred edge's coverage (a dark disc on a light
+            background read -0.14 too little on its ramp, ``tests/test_video.py``), so its
+            outline moves with its speed.
         albedo_passes: passes that re-estimate the object's albedo direction from the pixels the
             previous pass calls covered (coverage >= ``PURE_COVERAGE``), instead of from every
             eroded detection pixel. On a blurred or thin object most of those are partly covered
@@ -110,7 +114,7 @@ class SegmentationSettings:
     alpha_smoothing: float = 1.0
     shading_radius: float = 1.5
     chroma_weight: float = 0.5
-    transfer: str = "linear"
+    transfer: str = "auto"
     albedo_passes: int = 0
     morph_radius: int = 1
     min_area: int = 6
@@ -160,6 +164,9 @@ class Observation:
         background: (H, W, 3) uint8 RGB background model (distorted, as recorded), or None
             for mask input.
         areas: (T,) int64 mask areas, pixels.
+        transfer: the curve the pixel values were decoded through (``SegmentationSettings.transfer``,
+            ``"auto"`` resolved by :func:`stored_transfer`); ``""`` for mask input.
+        transfer_note: where that curve came from, a sentence.
     """
 
     masks: np.ndarray
@@ -174,6 +181,8 @@ class Observation:
     from_cache: bool = False
     background: np.ndarray | None = None
     areas: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    transfer: str = ""
+    transfer_note: str = ""
 
     @property
     def times(self) -> np.ndarray:
@@ -304,6 +313,229 @@ def read_frames(source: str | Path, frame_indices) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------
+# The transfer curve a file names
+# --------------------------------------------------------------------------------------
+
+# ITU-T H.273 transfer characteristics, the code that an MP4/MOV 'colr' box, an H.264 stream's
+# VUI and a PNG's cICP chunk carry: those SegmentationSettings decodes, and names of some it does not
+_H273_DECODED = {1: "bt709", 6: "bt709", 14: "bt709", 15: "bt709", 13: "srgb", 8: "linear", 18: "hlg"}
+_H273_UNDECODED = {4: "gamma 2.2", 5: "gamma 2.8", 7: "SMPTE 240M", 9: "logarithmic 100:1",
+                   10: "logarithmic 316:1", 11: "IEC 61966-2-4", 12: "BT.1361", 16: "PQ (SMPTE ST 2084)",
+                   17: "SMPTE ST 428-1"}
+_MP4_SUFFIXES = (".mp4", ".m4v", ".mov", ".3gp")
+_MP4_PATH = (b"moov", b"trak", b"mdia", b"minf", b"stbl", b"stsd")
+_VISUAL_ENTRY_HEADER = 78  # bytes of a VisualSampleEntry before its child boxes (ISO/IEC 14496-12)
+_H264_HIGH_PROFILES = (100, 110, 122, 244, 44, 83, 86, 118, 128, 138, 139, 134, 135)
+
+
+def _iso_boxes(data: bytes):
+    """Yield ``(type, payload)`` of the ISO base media boxes laid end to end in ``data``."""
+    i = 0
+    while i + 8 <= len(data):
+        size, kind, head = int.from_bytes(data[i:i + 4], "big"), data[i + 4:i + 8], 8
+        if size == 1:
+            size, head = int.from_bytes(data[i + 8:i + 16], "big"), 16
+        elif size == 0:
+            size = len(data) - i
+        if size < head:
+            return
+        yield kind, data[i + head:i + size]
+        i += size
+
+
+def _read_moov(path: Path) -> bytes | None:
+    """The payload of an MP4/MOV file's top-level 'moov' box, seeking past the others (media data)."""
+    with open(path, "rb") as file:
+        while len(head := file.read(8)) == 8:
+            size, kind, length = int.from_bytes(head[:4], "big"), head[4:], 8
+            if size == 1:
+                size, length = int.from_bytes(file.read(8), "big"), 16
+            if kind == b"moov":
+                return file.read(size - length if size else -1)
+            if size < length:
+                return None
+            file.seek(size - length, 1)
+    return None
+
+
+class _Bits:
+    """An H.264 RBSP read bit by bit (fixed-width and Exp-Golomb fields)."""
+
+    def __init__(self, nal: bytes):
+        rbsp, zeros = bytearray(), 0
+        for byte in nal:  # drop the emulation prevention bytes (00 00 03 -> 00 00)
+            if zeros >= 2 and byte == 3:
+                zeros = 0
+                continue
+            rbsp.append(byte)
+            zeros = zeros + 1 if byte == 0 else 0
+        self.bits, self.at = "".join(f"{b:08b}" for b in rbsp), 0
+
+    def u(self, n: int) -> int:
+        if self.at + n > len(self.bits):
+            raise EOFError("the parameter set ends early")
+        value = int(self.bits[self.at:self.at + n], 2) if n else 0
+        self.at += n
+        return value
+
+    def ue(self) -> int:
+        zeros = 0
+        while self.u(1) == 0:
+            zeros += 1
+        return (1 << zeros) - 1 + self.u(zeros)
+
+    def se(self) -> int:
+        k = self.ue()
+        return (k + 1) // 2 if k % 2 else -(k // 2)
+
+
+def _h264_sps_transfer(nal: bytes) -> int | None:
+    """The transfer code of an H.264 sequence parameter set's VUI (ITU-T H.264 7.3.2.1.1, E.1.1),
+    None where it carries no colour description."""
+    bits = _Bits(nal[1:])  # past the NAL header
+    profile = bits.u(8)
+    bits.u(16)  # constraint flags, level
+    bits.ue()  # seq_parameter_set_id
+    if profile in _H264_HIGH_PROFILES:
+        chroma = bits.ue()
+        if chroma == 3:
+            bits.u(1)
+        bits.ue(), bits.ue(), bits.u(1)  # bit depths, qpprime_y_zero_transform_bypass
+        if bits.u(1):  # seq_scaling_matrix_present
+            for i in range(8 if chroma != 3 else 12):
+                if bits.u(1):
+                    last = following = 8
+                    for _ in range(16 if i < 6 else 64):
+                        if following:
+                            following = (last + bits.se() + 256) % 256
+                        last = following or last
+    bits.ue()  # log2_max_frame_num_minus4
+    order = bits.ue()
+    if order == 0:
+        bits.ue()
+    elif order == 1:
+        bits.u(1), bits.se(), bits.se()
+        for _ in range(bits.ue()):
+            bits.se()
+    bits.ue(), bits.u(1), bits.ue(), bits.ue()  # max_num_ref_frames, gaps, width, height in macroblocks
+    if not bits.u(1):  # frame_mbs_only
+        bits.u(1)
+    bits.u(1)  # direct_8x8_inference
+    if bits.u(1):  # frame_cropping
+        bits.ue(), bits.ue(), bits.ue(), bits.ue()
+    if not bits.u(1):  # vui_parameters_present
+        return None
+    if bits.u(1) and bits.u(8) == 255:  # aspect ratio info, extended SAR
+        bits.u(32)
+    if bits.u(1):  # overscan_info_present
+        bits.u(1)
+    if not bits.u(1):  # video_signal_type_present
+        return None
+    bits.u(4)  # video_format, video_full_range
+    if not bits.u(1):  # colour_description_present
+        return None
+    bits.u(8)  # colour_primaries
+    return bits.u(8)
+
+
+def _mp4_transfer(path: Path) -> tuple[int | None, str]:
+    """The transfer code an MP4/MOV file names for its first video track, and where it was read:
+    the sample entry's 'colr' box (nclx, or QuickTime's nclc), else its H.264 'avcC' sequence
+    parameter set's VUI. ``(None, why)`` where neither names one."""
+    moov = _read_moov(path)
+    if moov is None:
+        return None, "the file has no 'moov' box"
+
+    def entries(data: bytes, depth: int):
+        """The sample entries of every track's 'stsd' box, each as ``{child type: payload}``."""
+        for kind, payload in _iso_boxes(data):
+            if kind == _MP4_PATH[depth] == b"stsd":
+                for _, entry in _iso_boxes(payload[8:]):  # past version, flags and the entry count
+                    yield dict(_iso_boxes(entry[_VISUAL_ENTRY_HEADER:]))
+            elif kind == _MP4_PATH[depth]:
+                yield from entries(payload, depth + 1)
+
+    for children in entries(moov, 1):
+        colr = children.get(b"colr", b"")
+        if colr[:4] in (b"nclx", b"nclc") and len(colr) >= 10:
+            return int.from_bytes(colr[6:8], "big"), "'colr' box"
+        avcc = children.get(b"avcC", b"")
+        if len(avcc) > 8 and avcc[5] & 0x1F:
+            try:
+                return _h264_sps_transfer(avcc[8:8 + int.from_bytes(avcc[6:8], "big")]), "H.264 stream's VUI"
+            except EOFError:
+                return None, "H.264 stream's parameter set, which ends early"
+    return None, "no video track with a 'colr' box or an H.264 'avcC' box"
+
+
+def _png_transfer(path: Path) -> tuple[int | None, str]:
+    """The transfer code a PNG's chunks name before its image data: cICP (H.273), sRGB (13), or
+    gAMA 1.0 (8) or 1/2.2 (13, the sRGB curve's approximation); -1 for another gAMA.
+    ``(None, why)`` where none is there."""
+    with open(path, "rb") as file:
+        data = file.read(1 << 20)
+    i = 8  # past the signature
+    while i + 8 <= len(data):
+        length, kind = int.from_bytes(data[i:i + 4], "big"), data[i + 4:i + 8]
+        body = data[i + 8:i + 8 + length]
+        if kind == b"cICP" and length >= 2:
+            return body[1], "PNG's cICP chunk"
+        if kind == b"sRGB":
+            return 13, "PNG's sRGB chunk"
+        if kind == b"gAMA" and length == 4:
+            gamma = int.from_bytes(body, "big") / 100000.0
+            if abs(gamma - 1.0) < 0.01:
+                return 8, "PNG's gAMA chunk (1.0)"
+            if abs(gamma - 1 / 2.2) < 0.01:
+                return 13, f"PNG's gAMA chunk ({gamma:.5f}, the sRGB curve's approximation)"
+            return -1, f"PNG's gAMA chunk ({gamma:.5f})"
+        if kind in (b"IDAT", b"IEND"):
+            break
+        i += 12 + length
+    return None, "the PNG has no cICP, sRGB or gAMA chunk"
+
+
+def stored_transfer(path: str | Path) -> tuple[str, str]:
+    """The transfer curve a recording's file says its pixel values are stored through.
+
+    Args:
+        path: a video file or a folder of images (its first image is read).
+
+    Returns:
+        ``(transfer, note)``: one of ``TRANSFERS`` other than ``"auto"``, and a sentence on where
+        it came from. MP4/MOV files: the colour tag of the first video track ('colr' box, else
+        an H.264 stream's VUI); PNG: its cICP, sRGB or gAMA chunk; JPEG: ``"srgb"`` (JFIF and Exif
+        store sRGB). ``"linear"`` where the file names no curve (torchfit's own recordings name
+        none) or is of a kind whose tags are not read.
+
+    Raises:
+        ValueError: the file names a curve that torchfit does not decode (PQ, a pure gamma, ...).
+    """
+    path = Path(path)
+    images = _list_images(path) if path.is_dir() else []
+    first = images[0] if images else path
+    suffix = first.suffix.lower()
+    if suffix in (".jpg", ".jpeg"):
+        return "srgb", f"{first.name}: JPEG stores sRGB"
+    if suffix in _MP4_SUFFIXES:
+        code, where = _mp4_transfer(first)
+    elif suffix == ".png":
+        code, where = _png_transfer(first)
+    else:
+        return "linear", f"{first.name}: colour tags are read from MP4/MOV, PNG and JPEG files only; read as linear"
+    if code is None or code == 2:  # 2: unspecified
+        named = f"the {where} names it unspecified" if code == 2 else where
+        return "linear", (f"{first.name}: no transfer curve named ({named}); read as linear: set the "
+                          "segmentation's transfer (bt709 for most camera video) if it is not")
+    if code in _H273_DECODED:
+        return _H273_DECODED[code], f"{first.name}: transfer {code} ({_H273_DECODED[code]}) from the {where}"
+    label = f"transfer {code} ({_H273_UNDECODED.get(code, 'a code torchfit does not know')})" if code >= 0 else "a gamma"
+    raise ValueError(f"{str(first)!r}: the {where} names {label}, which torchfit does not decode; set the "
+                     f"segmentation's transfer to one of {', '.join(t for t in TRANSFERS if t != 'auto')} "
+                     "to read it as that")
+
+
+# --------------------------------------------------------------------------------------
 # Segmentation
 # --------------------------------------------------------------------------------------
 
@@ -359,16 +591,22 @@ def _largest(mask: np.ndarray) -> np.ndarray:
 
 def _decode(values: np.ndarray, transfer: str) -> np.ndarray:
     """Pixel values (any shape, 0..255) as linear light on the same 0..255 scale, float32:
-    unchanged for ``transfer="linear"``, else the inverse of the named encoding curve."""
-    if transfer == "linear":
+    unchanged for ``transfer="linear"`` (and ``"auto"``: frames without a file to name a curve, as
+    :func:`_segment` is given them, are taken as they are), else the inverse of the named curve."""
+    if transfer in ("linear", "auto"):
         return values.astype(np.float32)
     if values.dtype == np.uint8:  # a table of the 256 codes
         return _decode(np.arange(256, dtype=np.float64), transfer).astype(np.float32)[values]
     c = np.clip(values.astype(np.float64) / 255.0, 0.0, 1.0)
     if transfer == "srgb":
         light = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    else:  # bt709: the camera's curve 4.5 L below L = 0.018, 1.099 L^0.45 - 0.099 above
+    elif transfer == "hlg":  # BT.2100 hybrid log-gamma: sqrt(3 L) below L = 1/12, a ln(12 L - b) + c above
+        a, b, k = 0.17883277, 0.28466892, 0.55991073
+        light = np.where(c <= 0.5, c * c / 3.0, (np.exp((np.maximum(c, 0.5) - k) / a) + b) / 12.0)
+    elif transfer == "bt709":  # the camera's curve 4.5 L below L = 0.018, 1.099 L^0.45 - 0.099 above
         light = np.where(c < 0.081, c / 4.5, ((c + 0.099) / 1.099) ** (1.0 / 0.45))
+    else:
+        raise ValueError(f"transfer must be one of {TRANSFERS}, got {transfer!r}")
     return (255.0 * light).astype(np.float32)
 
 
@@ -647,7 +885,8 @@ def load_observation(
 
     Raises:
         ValueError: missing or unreadable input, no frames, nothing moving, a frame size that
-            is not the camera's, a bad fps, kind, method or frame range.
+            is not the camera's, a bad fps, kind, method or frame range, a transfer curve the
+            file names that torchfit does not decode (with ``settings.transfer="auto"``).
     """
     settings = settings or SegmentationSettings(method=method)
     path = Path(path)
@@ -678,6 +917,14 @@ def load_observation(
         if kind in ("images", "masks"):
             raise ValueError(f"kind={kind!r} needs a folder, got the file {str(path)!r}")
         kind = "video"
+
+    transfer_note = ""
+    if kind != "masks":
+        if settings.transfer == "auto":
+            transfer, transfer_note = stored_transfer(path)
+            settings = replace(settings, transfer=transfer)
+        else:
+            transfer_note = f"transfer {settings.transfer}, as set"
 
     cache_file = None
     cached = None
@@ -737,6 +984,8 @@ def load_observation(
         from_cache=cached is not None,
         background=background,
         areas=masks.sum(axis=(1, 2)).astype(np.int64),
+        transfer="" if kind == "masks" else settings.transfer,
+        transfer_note=transfer_note,
     )
 
 

@@ -662,7 +662,8 @@ def main(argv: list[str]) -> None:
     if argv[:1] == ["ramp"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_ramp.json"
         result = json.loads(file.read_text()) if file.exists() else {}
-        changes = {k: float(v) for k, v in (a.split("=") for a in argv[3:] if "=" in a)}
+        changes = {k: (int(v) if v.lstrip("-").isdigit() else float(v))
+                   for k, v in (a.split("=") for a in argv[3:] if "=" in a)}
         label = " ".join(f"{k}={v:g}" for k, v in changes.items())
         for source in [a for a in argv[3:] if "=" not in a] or ["as recorded", "motion blur alone"]:
             row = ramp(int(argv[1]), argv[2], source, changes)

@@ -815,6 +815,8 @@ class VideoWriter:
             self.stream = self.container.add_stream(encoder, rate=Fraction(fps).limit_denominator(1001))
             self.stream.width, self.stream.height, self.stream.pix_fmt = width, height, pix_fmt
             self.stream.options = {"crf": str(int(spec.crf)), "preset": preset}
+            if spec.transfer != "linear":  # name the curve in the stream, as a camera does (H.273 codes)
+                self.stream.codec_context.color_trc = {"bt709": 1, "srgb": 13}[spec.transfer]
         else:
             self.cv_writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*spec.codec),
                                              float(spec.fps if spec.fps_stated is None
