@@ -171,12 +171,17 @@ def _box(kind: bytes, payload: bytes) -> bytes:
 
 
 def _mp4(children: bytes) -> bytes:
-    """A minimal MP4: ftyp, media data, then moov/trak/mdia/minf/stbl/stsd with one 'avc1' sample
-    entry (78 header bytes) holding ``children`` boxes."""
-    entry = _box(b"avc1", bytes(78) + children)
-    stsd = _box(b"stsd", bytes(4) + (1).to_bytes(4, "big") + entry)
-    moov = _box(b"moov", _box(b"trak", _box(b"mdia", _box(b"minf", _box(b"stbl", stsd)))))
-    return _box(b"ftyp", b"isom" + bytes(4)) + _box(b"mdat", bytes(64)) + moov
+    """A minimal MP4: ftyp, media data, then moov with a sound track (whose sample entry holds a
+    'colr' naming PQ, which must not be read) and a video track, trak/mdia(hdlr)/minf/stbl/stsd with
+    one 'avc1' sample entry (78 header bytes) holding ``children`` boxes."""
+    def track(handler: bytes, entry: bytes) -> bytes:
+        stsd = _box(b"stsd", bytes(4) + (1).to_bytes(4, "big") + entry)
+        hdlr = _box(b"hdlr", bytes(8) + handler + bytes(12))
+        return _box(b"trak", _box(b"mdia", hdlr + _box(b"minf", _box(b"stbl", stsd))))
+
+    sound = track(b"soun", _box(b"mp4a", bytes(78) + _colr(16)))
+    video = track(b"vide", _box(b"avc1", bytes(78) + children))
+    return _box(b"ftyp", b"isom" + bytes(4)) + _box(b"mdat", bytes(64)) + _box(b"moov", sound + video)
 
 
 def _colr(transfer: int, kind: bytes = b"nclx") -> bytes:

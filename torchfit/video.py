@@ -452,6 +452,10 @@ def _mp4_transfer(path: Path) -> tuple[int | None, str]:
             if kind == _MP4_PATH[depth] == b"stsd":
                 for _, entry in _iso_boxes(payload[8:]):  # past version, flags and the entry count
                     yield dict(_iso_boxes(entry[_VISUAL_ENTRY_HEADER:]))
+            elif kind == _MP4_PATH[depth] == b"mdia":
+                handler = dict(_iso_boxes(payload)).get(b"hdlr", b"")
+                if handler[8:12] in (b"vide", b""):  # a video track's media (or one that does not say)
+                    yield from entries(payload, depth + 1)
             elif kind == _MP4_PATH[depth]:
                 yield from entries(payload, depth + 1)
 
