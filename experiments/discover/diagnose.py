@@ -13,7 +13,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
     python experiments/discover/diagnose.py lens-masks DIR NAME...     # true masks against the mesh projected through the lens, ~5 s each
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
-    python experiments/discover/diagnose.py blur SET NAME...           # coverage moments against the exposure's average, ~30 s each
+    python experiments/discover/diagnose.py blur SET NAME... [SETTING=V...]  # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
     python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
@@ -41,6 +41,7 @@ from segmentation_error import frame_errors, mask_centroids, measure, segment_wa
 from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
+from torchfit.video import SegmentationSettings
 
 HERE = Path(__file__).resolve().parent
 
@@ -484,7 +485,7 @@ def _whole(masks: np.ndarray) -> np.ndarray:
                      for m in masks])
 
 
-def blur(folder: Path, near_px: str = "4") -> dict:
+def blur(folder: Path, near_px: str = "4", settings=None) -> dict:
     """Is the soft coverage a better observation once the model blurs too? The five channels of
     the segmented mask and of its soft coverage (the per-pixel estimate before smoothing and
     threshold, clipped to [0, 1], within ``near_px`` of the mask) against the exact moments of the
@@ -492,7 +493,8 @@ def blur(folder: Path, near_px: str = "4") -> dict:
     the exposure (``exposure``: the recordings' own sub-frames, poses splined as in
     motion_blur.py). Moments are linear in coverage, so the blurred frame's coverage has exactly
     the exposure average's moments; the 0.5 contour of a blurred silhouette has not. Per pair and
-    channel: :func:`_stats` over the frames where the mask is whole."""
+    channel: :func:`_stats` over the frames where the mask is whole. ``settings``: the
+    segmentation's (default: the defaults)."""
     from scipy import ndimage
 
     from torchfit.losses import central_moments, mask_moments
@@ -512,7 +514,7 @@ def blur(folder: Path, near_px: str = "4") -> dict:
         subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
                                   torch.as_tensor(sub_position.reshape(-1, 3)))
         averaged = central_moments(_raw(subs).reshape(frames, subframes, 6).mean(1))
-    masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage)
+    masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
     whole = _whole(masks)
     near = np.stack([ndimage.binary_dilation(m, iterations=int(near_px)) for m in masks])
     observed = {"true mask": true, "mask": masks, "coverage": np.clip(np.stack(kept), 0, 1) * near}
@@ -582,7 +584,6 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
     import make_recordings as mr
 
     from torchfit.render import RenderMesh, render_silhouettes
-    from torchfit.video import SegmentationSettings
 
     mr.offscreen_gl()
     spec = {s.name: s for s, _ in mc.concealed_specs(fresh)}[name].replace(**SOURCES[source])
@@ -700,14 +701,20 @@ def main(argv: list[str]) -> None:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast")
-    names = argv[2:] if several else argv[2:3]
+    # blur's segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
+    changes = {k: (int(v) if v.lstrip("-").isdigit() else float(v))
+               for k, v in (a.split("=") for a in argv[2:] if "=" in a)} if command == "blur" else {}
+    names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
+    label = "".join(f"_{k}{v:g}" for k, v in changes.items())
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
-        result = commands[command](folder / name, *([] if several else argv[3:]))
+        extra = {"settings": SegmentationSettings(**changes)} if changes else {}
+        result = commands[command](folder / name, *([] if several else argv[3:]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
-        (HERE / "results" / f"diagnose_{command}_{argv[1]}_{name}.json").write_text(json.dumps(result, indent=1, default=float))
+        (HERE / "results" / f"diagnose_{command}_{argv[1]}_{name}{label}.json").write_text(
+            json.dumps(result, indent=1, default=float))
 
 
 if __name__ == "__main__":
