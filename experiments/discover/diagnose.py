@@ -16,6 +16,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py blur SET NAME... [SETTING=V...]  # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
+    python experiments/discover/diagnose.py clip SET NAME...           # what blur does to a ball's 0.5 contour, by geometry alone, ~1 s each
     python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
     python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
     python experiments/discover/diagnose.py codec FRESH NAME...        # remade with other H.264 encodings (CODECS), ~2 min each
@@ -628,6 +629,30 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
                    "extra_mask_pixels_per_frame": float(np.mean([r[1] for r in rows])), "frames": len(rows)}
             for part, rows in parts.items()}
 
+def clip(folder: Path) -> dict:
+    """What motion blur does to a ball's 0.5 contour, by geometry alone. A convex silhouette moved
+    along a line during the exposure covers a point for the share of the exposure that the point's
+    chord along the motion overlaps the swept interval; where the chord is at least half the
+    travel ``L`` that share reaches 0.5 exactly at the chord's ends, elsewhere never. So a
+    continuously blurred frame's 0.5 contour is the sharp silhouette less the two slivers where its
+    chord is shorter than ``L / 2``: for a disc of radius ``r`` the band ``|y| <= sqrt(r^2 - L^2 /
+    16)`` across the motion (checked on a 0.02 px grid, r 10, L 10.6: 311.63 px² against 311.62; the
+    recordings' 5 sub-frames, 3 of 5 inside, lose a little more where the chord is under 3 L / 4:
+    309.32). Per frame, from the true masks' radius (area) and centroid speed (``L`` = the
+    exposure's share of it), the change in the ``scale`` channel (square root of area) that the
+    frame-time render misses; a ball only."""
+    truth = json.loads((folder / "truth.json").read_text())
+    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    radius = np.sqrt(true.sum((1, 2)) / np.pi)
+    centre = np.array([np.argwhere(m).mean(0)[::-1] for m in true])
+    travel = float(truth["render"]["exposure_frac"]) * np.linalg.norm(np.gradient(centre, axis=0), axis=1)
+    y0 = radius * np.sqrt(np.clip(1 - travel**2 / (16 * radius**2), 0, 1))
+    kept = 2 * (y0 * np.sqrt(radius**2 - y0**2) + radius**2 * np.arcsin(y0 / radius)) / (np.pi * radius**2)
+    change = np.sqrt(kept) - 1
+    return {"radius_px": [float(radius.min()), float(radius.max())], "travel_px": [float(travel.min()), float(travel.max())],
+            "scale_change": [float(change.min()), float(change.max())], "per_frame_scale_change": change.tolist()}
+
+
 def contrast(folder: Path) -> dict:
     """Does the outline's object-background contrast flag the frames the segmentation gets wrong?
     Per frame the contrast |F - B| (grey levels, the segmentation's own local shading fit) along the
@@ -696,11 +721,11 @@ def main(argv: list[str]) -> None:
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
-                "contrast": contrast}
+                "contrast": contrast, "clip": clip}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast")
+    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip")
     # blur's segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = {k: (int(v) if v.lstrip("-").isdigit() else float(v))
                for k, v in (a.split("=") for a in argv[2:] if "=" in a)} if command == "blur" else {}
