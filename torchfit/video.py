@@ -23,9 +23,10 @@ the static scene:
    The mask is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half
    covered exactly at its position at that time. Closed, largest component, holes filled.
 
-The mixing model holds in light. A camera stores light through a curve (BT.709, sRGB), so with
-``SegmentationSettings.transfer`` the values are decoded to light before any of the above;
-torchfit's generated recordings mix in their stored values and are read as they are (``linear``).
+The mixing model holds in light. A camera stores light through a curve (BT.709, sRGB), so the
+values are decoded to light before any of the above, through the curve the file names
+(``SegmentationSettings.transfer = "auto"``, :func:`stored_transfer`) or the one set; torchfit's
+generated recordings name none, mix in their stored values and are read as they are (``linear``).
 
 Frames that should not be fitted keep their place in every per-frame array and are flagged
 ``used=False`` with a reason. Segmentation results are cached in ``cache_dir``.
