@@ -671,6 +671,11 @@ def contrast(folder: Path) -> dict:
                   "share_below_20": rows[:, 2], "share_below_30": rows[:, 3]}
     return {name: float(np.corrcoef(error, value)[0, 1]) for name, value in predictors.items()}
 
+def _setting_args(args: list[str]) -> dict:
+    """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
+    return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
+
+
 def main(argv: list[str]) -> None:
     remakes = {"sources": (sources, SOURCES, ERROR_KEYS), "codec": (codec, CODECS, ERROR_KEYS + ("bits_per_pixel",)),
                "stretch-sources": (stretch_sources, None, None)}
@@ -688,8 +693,7 @@ def main(argv: list[str]) -> None:
     if argv[:1] == ["ramp"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_ramp.json"
         result = json.loads(file.read_text()) if file.exists() else {}
-        changes = {k: (int(v) if v.lstrip("-").isdigit() else float(v))
-                   for k, v in (a.split("=") for a in argv[3:] if "=" in a)}
+        changes = _setting_args(argv[3:])
         label = " ".join(f"{k}={v:g}" for k, v in changes.items())
         for source in [a for a in argv[3:] if "=" not in a] or ["as recorded", "motion blur alone"]:
             row = ramp(int(argv[1]), argv[2], source, changes)
@@ -727,8 +731,7 @@ def main(argv: list[str]) -> None:
     command, folder = argv[0], HERE / argv[1]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip")
     # blur's segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
-    changes = {k: (int(v) if v.lstrip("-").isdigit() else float(v))
-               for k, v in (a.split("=") for a in argv[2:] if "=" in a)} if command == "blur" else {}
+    changes = _setting_args(argv[2:]) if command == "blur" else {}
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
     label = "".join(f"_{k}{v:g}" for k, v in changes.items())
     for name in names:
