@@ -186,3 +186,22 @@ def test_segmentation_settings_come_from_the_config():
     assert _segmentation_settings(default.segmentation).transfer == "auto"  # the curve the file names
     with pytest.raises(ConfigError, match="data.segmentation: transfer must be one of"):
         _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "gamma"}))
+
+
+def test_the_log_says_how_pixel_values_were_read():
+    """``auto`` that found no curve in the file names the key to set; a curve found or set does not."""
+    from torchfit.run import _transfer_line
+    from torchfit.video import Observation, SegmentationSettings
+
+    def observation(transfer, note):
+        return Observation(masks=np.zeros((1, 2, 2), bool), boxes=np.zeros((1, 4)), used=np.ones(1, bool),
+                           reasons=[""], fps=30.0, frame_indices=np.arange(1), camera=None, source="clip.mp4",
+                           kind="video", transfer=transfer, transfer_note=note)
+
+    untagged = observation("linear", "clip.mp4: no transfer curve named (H.264 stream's VUI); read as linear")
+    line = _transfer_line(untagged, SegmentationSettings())
+    assert line.startswith("pixel values: clip.mp4: no transfer curve named") and "data.segmentation.transfer=bt709" in line
+    assert "data.segmentation" not in _transfer_line(observation("linear", "transfer linear, as set"),
+                                                     SegmentationSettings(transfer="linear"))
+    assert "data.segmentation" not in _transfer_line(observation("bt709", "clip.mp4: transfer 1 (bt709) from the 'colr' box"),
+                                                     SegmentationSettings())

@@ -75,6 +75,15 @@ def _segmentation_settings(node) -> SegmentationSettings:
         raise ConfigError(f"data.segmentation: {err}") from None
 
 
+def _transfer_line(observation: Observation, segmentation: SegmentationSettings) -> str:
+    """The log's line on how the pixel values were read, with the key to set where ``auto`` found
+    no curve named in the file (camera footage usually is stored through one)."""
+    line = f"pixel values: {observation.transfer_note}"
+    if segmentation.transfer == "auto" and observation.transfer == "linear":
+        line += "; footage from a camera needs data.segmentation.transfer=bt709 (or srgb, hlg)"
+    return line
+
+
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when present, CPU otherwise."""
     if name == "auto":
@@ -259,14 +268,15 @@ def fit_recording(video: str | Path, shape: Shape, camera: Camera, settings: Sea
     """
     timing = {}
     clock = time.perf_counter()
+    segmentation = segmentation or SegmentationSettings()
     observation = load_observation(str(video), kind=kind, camera=camera, fps=fps, start=start, stop=stop,
-                                   cache_dir=cache_dir, settings=segmentation or SegmentationSettings())
+                                   cache_dir=cache_dir, settings=segmentation)
     timing["segmentation_s"] = time.perf_counter() - clock
     if progress is not None:
         progress(f"recording: {len(observation.masks)} frames at {observation.fps:g} fps, "
                  f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
         if observation.transfer_note:
-            progress(f"pixel values: {observation.transfer_note}")
+            progress(_transfer_line(observation, segmentation))
     problem, span = build_problem(observation, shape, camera, g=g, dtype=dtype, device=torch.device(device))
     clock = time.perf_counter()
     result = fit(problem, settings, progress=progress)
@@ -408,12 +418,13 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
+    segmentation = _segmentation_settings(data.segmentation)
     observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
                                    start=int(data.start), stop=data.stop,
                                    cache_dir=(out_dir / "cache") if data.cache else None,
-                                   settings=_segmentation_settings(data.segmentation))
+                                   settings=segmentation)
     if observation.transfer_note:
-        ctx["progress"](f"pixel values: {observation.transfer_note}")
+        ctx["progress"](_transfer_line(observation, segmentation))
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
                                   device=ctx["device"])
     truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None

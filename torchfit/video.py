@@ -530,8 +530,7 @@ def stored_transfer(path: str | Path) -> tuple[str, str]:
         return "linear", f"{first.name}: colour tags are read from MP4/MOV, PNG and JPEG files only; read as linear"
     if code is None or code == 2:  # 2: unspecified
         named = f"the {where} names it unspecified" if code == 2 else where
-        return "linear", (f"{first.name}: no transfer curve named ({named}); read as linear: set the "
-                          "segmentation's transfer (bt709 for most camera video) if it is not")
+        return "linear", f"{first.name}: no transfer curve named ({named}); read as linear"
     if code in _H273_DECODED:
         return _H273_DECODED[code], f"{first.name}: transfer {code} ({_H273_DECODED[code]}) from the {where}"
     label = f"transfer {code} ({_H273_UNDECODED.get(code, 'a code torchfit does not know')})" if code >= 0 else "a gamma"
