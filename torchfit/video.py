@@ -329,15 +329,19 @@ _VISUAL_ENTRY_HEADER = 78  # bytes of a VisualSampleEntry before its child boxes
 _H264_HIGH_PROFILES = (100, 110, 122, 244, 44, 83, 86, 118, 128, 138, 139, 134, 135)
 
 
+def _box_header(head: bytes) -> tuple[int, bytes, int]:
+    """``(size, type, header length)`` of the ISO base media box whose first (up to 16) bytes are
+    ``head``; size 0 means "to the end"."""
+    size, kind = int.from_bytes(head[:4], "big"), head[4:8]
+    return (int.from_bytes(head[8:16], "big"), kind, 16) if size == 1 else (size, kind, 8)
+
+
 def _iso_boxes(data: bytes):
     """Yield ``(type, payload)`` of the ISO base media boxes laid end to end in ``data``."""
     i = 0
     while i + 8 <= len(data):
-        size, kind, head = int.from_bytes(data[i:i + 4], "big"), data[i + 4:i + 8], 8
-        if size == 1:
-            size, head = int.from_bytes(data[i + 8:i + 16], "big"), 16
-        elif size == 0:
-            size = len(data) - i
+        size, kind, head = _box_header(data[i:i + 16])
+        size = size or len(data) - i
         if size < head:
             return
         yield kind, data[i + head:i + size]
@@ -347,10 +351,9 @@ def _iso_boxes(data: bytes):
 def _read_moov(path: Path) -> bytes | None:
     """The payload of an MP4/MOV file's top-level 'moov' box, seeking past the others (media data)."""
     with open(path, "rb") as file:
-        while len(head := file.read(8)) == 8:
-            size, kind, length = int.from_bytes(head[:4], "big"), head[4:], 8
-            if size == 1:
-                size, length = int.from_bytes(file.read(8), "big"), 16
+        while len(head := file.read(16)) >= 8:
+            size, kind, length = _box_header(head)
+            file.seek(length - len(head), 1)  # back to the payload's start
             if kind == b"moov":
                 return file.read(size - length if size else -1)
             if size < length:
@@ -677,13 +680,22 @@ PURE_COVERAGE = 0.9
 ALBEDO_MIN_PIXELS = 10
 
 
-def _two_unknown(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The per-pixel 2-unknown fit ``D = u A - a B`` (step 3a of the module docstring), its 2x2
-    normal equations solved in closed form: coverage ``a`` and ``u = a s``, each (...,), for
-    (..., 3) ``D = I - B`` and ``B`` in luma/chroma and a (3,) unit albedo ``A``."""
+def _background_terms(background: np.ndarray, albedo: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The background's part of :func:`_two_unknown`'s normal equations, each (...,) for (..., 3)
+    ``B`` and a (3,) albedo ``A``: ``A.B``, ``|B|^2`` and their determinant ``|B|^2 sin^2(angle(A, B))``."""
     a_dot_b = background @ albedo
     b_dot_b = (background**2).sum(-1)
-    det = np.maximum(b_dot_b - a_dot_b**2, 1e-6)  # |B|^2 sin^2(angle(A, B))
+    return a_dot_b, b_dot_b, b_dot_b - a_dot_b**2
+
+
+def _two_unknown(diff: np.ndarray, background: np.ndarray, albedo: np.ndarray,
+                 terms: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The per-pixel 2-unknown fit ``D = u A - a B`` (step 3a of the module docstring), its 2x2
+    normal equations solved in closed form: coverage ``a`` and ``u = a s``, each (...,), for
+    (..., 3) ``D = I - B`` and ``B`` in luma/chroma and a (3,) unit albedo ``A``. ``terms``: the
+    :func:`_background_terms` of ``B`` and ``A`` where the caller has them (every frame shares them)."""
+    a_dot_b, b_dot_b, det = terms if terms is not None else _background_terms(background, albedo)
+    det = np.maximum(det, 1e-6)
     d_dot_a, d_dot_b = diff @ albedo, (diff * background).sum(-1)
     return (a_dot_b * d_dot_a - d_dot_b) / det, (b_dot_b * d_dot_a - a_dot_b * d_dot_b) / det
 
@@ -741,15 +753,16 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     for _ in range(settings.albedo_passes):
         albedo = _albedo(colours, _two_unknown(diff[core], background[rows, cols], albedo)[0])
 
+    terms = _background_terms(background, albedo)  # the same for every frame
     # |B| sin(angle(A, B)) > 10 grey levels, else the coverage falls back to |D| / contrast
-    well_posed = (background**2).sum(-1) - (background @ albedo) ** 2 > 100.0
+    well_posed = terms[2] > 100.0
 
     region = _morph(seeds, "dilation", 2 * settings.morph_radius + 1)
     masks = np.zeros_like(seeds)
     for t in range(len(frames)):
         if not seeds[t].any():
             continue
-        coverage, shaded = _two_unknown(diff[t], background, albedo)  # u = a s
+        coverage, shaded = _two_unknown(diff[t], background, albedo, terms)  # u = a s
         contrast = float(np.percentile(magnitude[t][seeds[t]], 90))
         fallback = np.where(well_posed, coverage, magnitude[t] / max(contrast, 1e-6))
         if settings.shading_radius > 0:
