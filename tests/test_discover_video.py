@@ -715,3 +715,30 @@ def test_report_locates_a_size_mismatch_the_edge_bias_took():
     assert "smaller than the depth" in line and line.endswith("With time_scale the edge bias is +0.05 px.")
     assert "larger than the depth" in size_mismatch_lines(size_mismatch({"value": 0.6, "std": 0.05}, {"value": 0.6}), [])[0]
     assert size_mismatch_lines(None, []) == []
+
+
+def test_cli_exposure_is_checked_and_recorded(tmp_path):
+    """``data.exposure``: a fraction outside [0, 1] or taps of 1 are refused with the key named;
+    a quick run with one compares the soft coverage and records the exposure in discover.json."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    from torchfit.run import ConfigError, run
+
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    common = ["experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+              f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
+              "outputs.overlay_video=false", "quiet=true"]
+    for bad, message in ((["data.exposure=1.5"], "exposure must be a fraction of the frame interval in"),
+                         (["data.exposure=0.5", "data.exposure_taps=1"], "exposure taps must be 0")):
+        with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+            cfg = compose(config_name="config", overrides=common + bad)
+        with pytest.raises(ConfigError, match=f"data.exposure / data.exposure_taps: {message}"):
+            run(cfg, tmp_path / "bad")
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.5"])
+    run(cfg, tmp_path / "good")
+    content = json.loads((tmp_path / "good" / "discover.json").read_text())
+    assert content["exposure"] == {"fraction": 0.5, "taps": 0}
+    assert content["models"][0]["chi2_per_obs"] > 0

@@ -8,8 +8,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from torchfit.camera import Camera
+from torchfit.losses import central_moments
 from torchfit.video import (
     Observation,
     SegmentationSettings,
@@ -21,6 +23,7 @@ from torchfit.video import (
     _undistort,
     contact_sheet,
     load_observation,
+    raw_moments,
     read_frames,
     stored_transfer,
 )
@@ -388,6 +391,8 @@ def test_cache(tmp_path):
     assert not first.from_cache and second.from_cache
     np.testing.assert_array_equal(first.masks, second.masks)
     np.testing.assert_array_equal(first.boxes, second.boxes)
+    np.testing.assert_array_equal(first.coverage_moments, second.coverage_moments)
+    assert first.coverage_moments.shape == (len(first.masks), 6)
     assert first.reasons == second.reasons and first.fps == second.fps
     assert len(list(tmp_path.glob("*.npz"))) == 1
     other = load_observation(video, cache_dir=tmp_path, settings=SegmentationSettings(noise_sigmas=5))
@@ -404,6 +409,7 @@ def test_mask_folder(tmp_path):
     for kind in ("auto", "masks"):
         obs = load_observation(tmp_path, kind=kind, fps=30.0)
         assert obs.kind == "masks"
+        np.testing.assert_array_equal(obs.coverage_moments, raw_moments(obs.masks))  # a mask is its own coverage
         np.testing.assert_array_equal(obs.masks, truth)
         assert obs.used.all()
 
@@ -573,3 +579,26 @@ def test_undistortion_keeps_the_outline_where_it_was():
         areas.append(mask.sum() / (np.pi * radius**2) - 1.0)
     assert np.sqrt((np.asarray(errors) ** 2).sum(1).mean()) < 0.15
     assert abs(np.mean(areas)) < 0.005
+
+
+def test_soft_coverage_moments_are_the_blurred_frames_own():
+    """The segmentation keeps the raw moments of each frame's soft coverage (``coverage_moments``).
+    On a disc blurred by 10 px of travel, with one albedo pass, they are those of the exact
+    coverage (measured: area -1.0 %, variance along the motion -3.8 %, across -0.1 %), while
+    the mask's 0.5 contour is narrower along the motion (variance -23 %): the exposure's average
+    moments are what the coverage shows, not the mask."""
+    frames, covers = _blurred_disc_frames()
+    out = _segment(frames, SegmentationSettings(albedo_passes=1))
+    inner = slice(2, -2)  # the first and last frames' background median is the weakest
+    exact = central_moments(torch.as_tensor(raw_moments(covers[inner])))
+    soft = central_moments(torch.as_tensor(out["coverage_moments"][inner]))
+    mask = central_moments(torch.as_tensor(raw_moments(out["masks"][inner])))
+
+    def relative(moments, index):
+        value = moments[0] if index is None else moments[2][:, index, index]
+        reference = exact[0] if index is None else exact[2][:, index, index]
+        return float(((value - reference) / reference).mean())
+
+    assert abs(relative(soft, None)) < 0.02 and abs(relative(soft, 0)) < 0.06 and abs(relative(soft, 1)) < 0.01
+    assert relative(mask, 0) < -0.15
+    assert float((soft[1] - exact[1]).abs().max()) < 0.02  # px

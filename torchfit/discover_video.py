@@ -68,13 +68,14 @@ from .search import (
     Candidates,
     FitResult,
     Problem,
+    Exposure,
     SearchSettings,
     candidate_poses,
     camera_effects,
     candidate_moments,
     fit,
 )
-from .video import _boxes
+from .video import _boxes, raw_moments
 
 __all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "VIDEO_EFFECTS",
            "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
@@ -361,6 +362,13 @@ class VideoProblem:
         search: settings of the baseline search from no guess.
         iterations: Levenberg-Marquardt iterations of each refit.
         edge_px: systematic edge accuracy of the segmentation (see :mod:`torchfit.residuals`).
+        exposure: the camera's exposure (:class:`torchfit.search.Exposure`), or None. With one,
+            the observation is ``coverage``, the (T, 6) raw moments of each frame's soft
+            coverage (:attr:`torchfit.video.Observation.coverage_moments`), and each model's
+            silhouette is averaged over the exposure: a blurred frame's coverage has exactly the
+            exposure's average moments, while its 0.5 contour, the mask, is neither that nor the
+            frame's instant. None: the masks against the frame's instant.
+        coverage: see ``exposure``.
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -374,13 +382,18 @@ class VideoProblem:
 
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
+                 exposure: Exposure | None = None, coverage: Tensor | None = None,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
             raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
+        if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
+            raise ValueError(f"an exposure needs the ({len(problem.times)}, 6) raw moments of the frames' soft "
+                             f"coverage, got {None if coverage is None else tuple(coverage.shape)}")
         self.search_problem = problem
+        self.exposure = exposure
         # refits run in float64: finite differences of a converged fit need more than float32 resolves
         problem = _as_float64(problem)
         self.problem = problem
@@ -396,6 +409,12 @@ class VideoProblem:
         self.train[idx[-n_held:]] = False
         self.held = used & ~self.train
         self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
+        # the soft coverage's raw moments less the mask's: what the edge nuisance's moments of the
+        # masks are shifted by when the observation is the coverage
+        self.coverage_shift = None
+        if exposure is not None:
+            mask_raw = torch.as_tensor(raw_moments(problem.masks.cpu().numpy() > 0.5))
+            self.coverage_shift = coverage.to(problem.masks) - mask_raw.to(problem.masks)
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
@@ -424,7 +443,7 @@ class VideoProblem:
     def _fitted_moments(self, cands: Candidates, effects: Sequence[Effect]) -> tuple[Tensor, Tensor, Tensor]:
         """Area (B, T), centroid (B, T, 2) and covariance (B, T, 2, 2) of B candidates' silhouettes
         in every frame (image pixels), exact (:func:`torchfit.search.candidate_moments`)."""
-        return candidate_moments(self.problem, cands, len(self.problem.times), effects)
+        return candidate_moments(self.problem, cands, len(self.problem.times), effects, exposure=self.exposure)
 
     def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
@@ -856,6 +875,8 @@ class VideoProblem:
             fitted = self._fitted_moments(model.cands, self.effects(model.values))
             masks = self.problem.masks.cpu().numpy() > 0.5
             self.edge_table = _edge_moments(masks, fitted[2][0].cpu()).to(self.problem.masks.device)
+            if self.coverage_shift is not None:
+                self.edge_table = self.edge_table + self.coverage_shift
             channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.edge).items()}
         used = self.problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
@@ -975,7 +996,7 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
 def discover_video(problem: Problem, observation, span: np.ndarray, *, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
-                   overlay: bool = True, truth: dict | None = None,
+                   overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
@@ -991,14 +1012,23 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             segmentation error, see experiments/discover/calibrate_noise.py).
         out_dir: where ``discover.json``, ``residuals.png`` and ``overlay_discover.mp4`` go.
         truth: the recording's ``truth.json`` content (its ``effects`` are reported beside the verdict).
+        exposure: the camera's exposure; with one, the observation is the frames' soft coverage
+            (``observation.coverage_moments``) and every model's silhouette is averaged over it
+            (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
     """
     clock = time.perf_counter()
     say = progress or (lambda message: None)
+    coverage = None
+    if exposure is not None:
+        if observation.coverage_moments is None:
+            raise ValueError("an exposure needs the frames' soft coverage, which a camera with lens distortion "
+                             "does not keep (its masks are undistorted): leave the exposure out")
+        coverage = torch.as_tensor(observation.coverage_moments[span])
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
-                         iterations=iterations, edge_px=edge_px, progress=say)
+                         iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1025,6 +1055,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
         "noise": video.noise,
         "noise_edge_px": edge_px,
+        "exposure": None if exposure is None else asdict(exposure),
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],

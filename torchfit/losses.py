@@ -12,7 +12,7 @@ import torch.nn.functional as F
 from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
-__all__ = ["sample_targets", "silhouette_loss", "mask_moments", "central_moments"]
+__all__ = ["sample_targets", "silhouette_loss", "mask_moments", "central_moments", "raw_from_central"]
 
 
 def sample_targets(masks: Tensor, windows: Tensor, size: tuple[int, int]) -> Tensor:
@@ -101,6 +101,14 @@ def central_moments(raw: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     cuu, cuv, cvv = raw[:, 3] / safe - cu * cu, raw[:, 4] / safe - cu * cv, raw[:, 5] / safe - cv * cv
     cov = torch.stack((torch.stack((cuu, cuv), -1), torch.stack((cuv, cvv), -1)), -2)
     return area, torch.stack((cu, cv), -1), cov
+
+
+def raw_from_central(area: Tensor, centroid: Tensor, cov: Tensor) -> Tensor:
+    """(N, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` about the origin of the centroid
+    from area (N,), centroid (N, 2) and covariance (N, 2, 2): the inverse of :func:`central_moments`."""
+    cu, cv = centroid[..., 0], centroid[..., 1]
+    return torch.stack((area, area * cu, area * cv, area * (cov[..., 0, 0] + cu * cu),
+                        area * (cov[..., 0, 1] + cu * cv), area * (cov[..., 1, 1] + cv * cv)), -1)
 
 
 def mask_moments(masks: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -29,7 +29,7 @@ from .paper import roll as paper_roll
 from .paper import tshape_fig3 as paper_tshape
 from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
-from .search import FitResult, Problem, SearchSettings, fit
+from .search import Exposure, FitResult, Problem, SearchSettings, fit
 from .shape import PRIMITIVES, Shape, load_shape
 from .video import Observation, SegmentationSettings, contact_sheet, load_observation
 
@@ -73,6 +73,16 @@ def _segmentation_settings(node) -> SegmentationSettings:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer))
     except ValueError as err:
         raise ConfigError(f"data.segmentation: {err}") from None
+
+
+def _exposure(data) -> Exposure | None:
+    """``data.exposure`` and ``data.exposure_taps`` as an :class:`Exposure` (None when unset)."""
+    if data.get("exposure") is None:
+        return None
+    try:
+        return Exposure(float(data.exposure), int(data.get("exposure_taps", 0)))
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"data.exposure / data.exposure_taps: {err}") from None
 
 
 def _transfer_line(observation: Observation, segmentation: SegmentationSettings) -> str:
@@ -416,8 +426,12 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     data = cfg.data
     if data.fps is not None and not float(data.fps) > 0:
         raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
+    exposure = _exposure(data)
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
+    if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
+        raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
+                          "does not keep (its masks are undistorted); leave data.exposure out")
     segmentation = _segmentation_settings(data.segmentation)
     observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
                                    start=int(data.start), stop=data.stop,
@@ -431,7 +445,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     summary = discover_video(problem, observation, span, candidates=candidates, settings=rules,
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
-                             progress=ctx["progress"])
+                             exposure=exposure, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")

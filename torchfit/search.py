@@ -35,7 +35,7 @@ from torch.nn.utils import parametrize
 from .camera import Camera, gravity_direction, project, tilt_roll_from_direction
 from .dynamics import RigidBody, integrate
 from .effects import Effect, apply_effects, clock_rate, lens_model, shutter_model
-from .losses import coverage_residuals, mask_moments, sample_targets, silhouette_loss
+from .losses import central_moments, coverage_residuals, mask_moments, raw_from_central, sample_targets, silhouette_loss
 from .render import (
     RenderMesh,
     Shutter,
@@ -55,8 +55,8 @@ from .rotation import (
 )
 from .shape import Shape
 
-__all__ = ["SCALES", "Candidates", "FitResult", "Problem", "SearchSettings", "camera_effects", "candidate_losses",
-           "candidate_moments", "candidate_silhouettes",
+__all__ = ["SCALES", "Candidates", "Exposure", "FitResult", "Problem", "SearchSettings", "camera_effects",
+           "candidate_losses", "candidate_moments", "candidate_silhouettes", "exposure_poses",
            "estimate_track", "fit", "refine", "rk4_step", "so3_grid"]
 
 log = logging.getLogger(__name__)
@@ -467,18 +467,101 @@ def camera_effects(problem: Problem, effects: Sequence[Effect],
     return lens_model(effects), shutter
 
 
+@dataclass(frozen=True)
+class Exposure:
+    """A shutter open for ``fraction`` of the true frame interval, centred on each frame's time.
+
+    ``taps``: 0 for a camera, whose sensor integrates over the whole exposure; ``K >= 2`` for a
+    renderer that averages K equally spaced instants over it, first and last at its ends
+    (torchfit's generated recordings: ``truth.json``'s ``render.blur_subframes``).
+
+    A silhouette's raw moments are averaged over the exposure by a three-point rule at its
+    middle and ends, weights ``(w, 1 - 2w, w)`` with ``w`` half the mean square of the offset in
+    half-exposures (1/6 for a camera, 1/4 for five taps): exact for moments that are cubic in
+    time, as a translation's are (a turn of ``θ`` over the exposure leaves ``θ⁴``).
+    """
+
+    fraction: float
+    taps: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.fraction) and 0.0 <= self.fraction <= 1.0):
+            raise ValueError(f"exposure must be a fraction of the frame interval in [0, 1], got {self.fraction}")
+        if self.taps != 0 and self.taps < 2:
+            raise ValueError(f"exposure taps must be 0 (a camera) or at least 2 (a renderer's sub-frames), "
+                             f"got {self.taps}")
+
+    @property
+    def end_weight(self) -> float:
+        """``w``, the weight of each end of the three-point rule."""
+        if self.taps == 0:
+            return 1.0 / 6.0
+        offsets = torch.linspace(-1.0, 1.0, self.taps, dtype=torch.float64)
+        return float((offsets**2).mean()) / 2.0
+
+
+def exposure_poses(rot: Tensor, position: Tensor, motion: Tensor, com: Tensor, gravity: Tensor,
+                   offset: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Poses ``offset`` seconds after the given ones, the body in free flight meanwhile.
+
+    The centre of mass moves on its parabola and the body turns at its present angular velocity
+    (forces other than gravity and the change of the spin are left out: their effect is second
+    order in an exposure of a few milliseconds).
+
+    Args:
+        rot: (B, T, 3, 3) and position (B, T, 3): mesh-to-camera poses, metres.
+        motion: (B, T, 6) the mesh origin's velocity (m/s) and the angular velocity (rad/s),
+            camera frame (:func:`candidate_poses`).
+        com: (3,) or (B, 3) the centre of mass in the mesh frame; gravity: (B, 3) m/s².
+        offset: () or (B,) seconds.
+
+    Returns:
+        The poses and motion at the offset, shaped as given.
+    """
+    offset = offset.to(rot).reshape(-1, 1, 1).expand(rot.shape[0], 1, 1)  # (B, 1, 1)
+    velocity, omega = motion[..., :3], motion[..., 3:]
+    lever = (rot @ com.to(rot).reshape(-1, 1, 3, 1)).squeeze(-1)  # (B, T, 3): centre of mass - origin
+    com_velocity = velocity + torch.cross(omega, lever, dim=-1)
+    turn = quat_to_matrix(axis_angle_to_quat(omega * offset))
+    moved_rot = turn @ rot
+    moved_lever = (turn @ lever.unsqueeze(-1)).squeeze(-1)
+    gravity = gravity.to(rot)[:, None]
+    com_moved = position + lever + com_velocity * offset + 0.5 * gravity * offset**2
+    com_velocity = com_velocity + gravity * offset
+    moved_velocity = com_velocity - torch.cross(omega, moved_lever, dim=-1)
+    return moved_rot, com_moved - moved_lever, torch.cat((moved_velocity, omega), -1)
+
+
 def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects: Sequence[Effect] = (),
-                      rotation_step: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                      rotation_step: float | None = None,
+                      exposure: Exposure | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Exact area (B, frames), centroid (B, frames, 2) and covariance (B, frames, 2, 2) of the
     candidates' hard silhouettes, image pixels (:func:`torchfit.render.silhouette_moments`).
 
-    ``rotation_step``: see :func:`candidate_poses`.
+    ``rotation_step``: see :func:`candidate_poses`. ``exposure``: average the silhouette over
+    the exposure (:class:`Exposure`; None or a zero fraction: the frame's instant).
     """
     rot, position, motion = candidate_poses(problem, cands, frames, effects, rotation_step)
     batch = rot.shape[0]
-    moments = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3), position.reshape(-1, 3),
-                                 *camera_effects(problem, effects, motion))
-    return tuple(m.reshape(batch, frames, *m.shape[1:]) for m in moments)
+    if exposure is None or exposure.fraction == 0:
+        moments = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3), position.reshape(-1, 3),
+                                     *camera_effects(problem, effects, motion))
+        return tuple(m.reshape(batch, frames, *m.shape[1:]) for m in moments)
+    times = problem.times[:frames].to(rot)
+    body = apply_effects(effects, problem.body, times)[0]
+    rate = clock_rate(effects)
+    interval = float(problem.times[1] - problem.times[0]) * (1.0 if rate is None else rate.to(rot))
+    half = torch.as_tensor(0.5 * exposure.fraction * interval, dtype=rot.dtype, device=rot.device)
+    gravity = cands.gravity(problem.g).to(rot)
+    poses = [(rot, position, motion)] + [exposure_poses(rot, position, motion, body.com, gravity, sign * half)
+                                         for sign in (-1.0, 1.0)]
+    rot, position, motion = (torch.stack(parts, 0) for parts in zip(*poses))  # (3, B, T, ...)
+    area, centroid, cov = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3),
+                                             position.reshape(-1, 3), *camera_effects(problem, effects, motion))
+    raw = raw_from_central(area, centroid, cov).reshape(3, batch, frames, 6)
+    end = exposure.end_weight
+    return tuple(m.reshape(batch, frames, *m.shape[1:])
+                 for m in central_moments(((1 - 2 * end) * raw[0] + end * (raw[1] + raw[2])).reshape(-1, 6)))
 
 
 def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float | None,

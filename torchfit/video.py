@@ -22,6 +22,10 @@ the static scene:
       too dark or too close to ``A`` in colour for step a, the shading comes from neighbours.
    The mask is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half
    covered exactly at its position at that time. Closed, largest component, holes filled.
+   The coverage itself, clipped to [0, 1] within ``COVERAGE_NEAR_PX`` of the mask, is kept as
+   its raw moments (``Observation.coverage_moments``): moments are linear in coverage, so a
+   blurred frame's are the exposure's average of the silhouette's (what ``discover`` compares
+   with an exposure, :class:`torchfit.search.Exposure`).
 
 The mixing model holds in light. A camera stores light through a curve (BT.709, sRGB), so the
 values are decoded to light before any of the above, through the curve the file names
@@ -51,6 +55,7 @@ __all__ = [
     "Observation",
     "SegmentationSettings",
     "load_observation",
+    "raw_moments",
     "read_frames",
     "stored_transfer",
     "contact_sheet",
@@ -61,7 +66,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
-_CACHE_VERSION = 4
+_CACHE_VERSION = 5
+# the soft coverage counts within this many pixels (4-neighbour steps) of the final mask
+COVERAGE_NEAR_PX = 4
 
 
 @dataclass(frozen=True)
@@ -168,6 +175,10 @@ class Observation:
         transfer: the curve the pixel values were decoded through (``SegmentationSettings.transfer``,
             ``"auto"`` resolved by :func:`stored_transfer`); ``""`` for mask input.
         transfer_note: where that curve came from, a sentence.
+        coverage_moments: (T, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` about the image
+            origin (pixel centres at integers) of each frame's soft coverage (the mask's own for
+            mask input; zeros where a frame has no object); None where the masks were undistorted
+            (the coverage is not).
     """
 
     masks: np.ndarray
@@ -184,6 +195,7 @@ class Observation:
     areas: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     transfer: str = ""
     transfer_note: str = ""
+    coverage_moments: np.ndarray | None = None
 
     @property
     def times(self) -> np.ndarray:
@@ -718,6 +730,18 @@ def _albedo(colours: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
     return albedo / np.linalg.norm(albedo)
 
 
+def raw_moments(images: np.ndarray) -> np.ndarray:
+    """(T, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` of (T, H, W) non-negative images
+    about the image origin, ``u`` the column and ``v`` the row index (float64)."""
+    images = np.asarray(images, np.float64)
+    u = np.arange(images.shape[2], dtype=np.float64)
+    v = np.arange(images.shape[1], dtype=np.float64)
+    rows = images.sum(2)  # (T, H)
+    row_u = images @ u  # (T, H): sum over each row of a u
+    row_uu = images @ (u * u)
+    return np.stack((rows.sum(1), row_u.sum(1), rows @ v, row_uu.sum(1), row_u @ v, rows @ (v * v)), -1)
+
+
 def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached."""
     background_bgr = _estimate_background(frames, settings)
@@ -746,7 +770,8 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     if core.sum() < 10:
         core = seeds
     if not core.any():
-        return {"masks": seeds, "background": background_bgr, "second_frac": second_frac}
+        return {"masks": seeds, "background": background_bgr, "second_frac": second_frac,
+                "coverage_moments": raw_moments(seeds)}
     _, rows, cols = np.nonzero(core)
     colours = frames[core]
     albedo = _albedo(colours, None)
@@ -759,6 +784,7 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
 
     region = _morph(seeds, "dilation", 2 * settings.morph_radius + 1)
     masks = np.zeros_like(seeds)
+    covers = {}  # frame -> (H, W) coverage before smoothing and threshold
     for t in range(len(frames)):
         if not seeds[t].any():
             continue
@@ -771,14 +797,19 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
                                                weight, fallback, settings.shading_radius)
         else:
             coverage = fallback
+        covers[t] = coverage
         if settings.alpha_smoothing > 0:
             coverage = cv2.GaussianBlur(coverage.astype(np.float32), (0, 0), settings.alpha_smoothing)
         masks[t] = (coverage >= settings.alpha_threshold) & region[t]
     masks = _morph(masks, "closing", settings.morph_radius)
+    cover_moments = np.zeros((len(frames), 6))
     for t in range(len(frames)):
         if masks[t].any():
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
-    return {"masks": masks, "background": background_bgr, "second_frac": second_frac}
+            near = ndimage.binary_dilation(masks[t], iterations=COVERAGE_NEAR_PX)
+            cover_moments[t] = raw_moments((np.clip(covers[t], 0.0, 1.0) * near)[None])[0]
+    return {"masks": masks, "background": background_bgr, "second_frac": second_frac,
+            "coverage_moments": cover_moments}
 
 
 # --------------------------------------------------------------------------------------
@@ -957,9 +988,10 @@ def load_observation(
                 np.sort(_components(m)[1])[::-1]) for m in masks
         ])
         frame_fps = float(fps)
+        cover_moments = raw_moments(masks)
     elif cached is not None:
         masks, second_frac = cached["masks"].astype(bool), cached["second_frac"]
-        background = cached["background"]
+        background, cover_moments = cached["background"], cached["coverage_moments"]
         frame_fps = float(fps) if fps is not None else float(cached["fps"])
     else:
         if kind == "video":
@@ -969,6 +1001,7 @@ def load_observation(
         _check_size(frames.shape[1:3], camera, path)
         segmented = _segment(frames, settings)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
+        cover_moments = segmented["coverage_moments"]
         background = cv2.cvtColor(
             np.clip(np.round(segmented["background"]), 0, 255).astype(np.uint8), cv2.COLOR_BGR2RGB)
         if fps is None and not (math.isfinite(file_fps) and file_fps > 0):
@@ -977,11 +1010,11 @@ def load_observation(
         if cache_file is not None:
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(cache_file, masks=masks, second_frac=second_frac,
-                                background=background, fps=file_fps)
+                                background=background, fps=file_fps, coverage_moments=cover_moments)
     _check_size(masks.shape[1:3], camera, path)
 
     if camera is not None and any(c != 0 for c in camera.dist_coeffs):
-        masks = _undistort(masks, camera)
+        masks, cover_moments = _undistort(masks, camera), None
     reasons = _flag(masks, second_frac, settings)
     if all(r == "no object" for r in reasons):
         raise ValueError(
@@ -1003,6 +1036,7 @@ def load_observation(
         areas=masks.sum(axis=(1, 2)).astype(np.int64),
         transfer="" if kind == "masks" else settings.transfer,
         transfer_note=transfer_note,
+        coverage_moments=cover_moments,
     )
 
 

@@ -10,6 +10,7 @@
     python experiments/discover/concealed.py --with rolling_shutter [...] # one more candidate (results/..._with_<name>/)
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
     python experiments/discover/concealed.py --albedo-passes N [...]  # the albedo from covered pixels (N passes)
+    python experiments/discover/concealed.py --exposure [...]         # the soft coverage against the exposure's average
     python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --transfer T [--read-as R] [...] # the set stored through camera curve T (make_concealed.py --transfer T), segmented as T (or as R)
@@ -17,6 +18,7 @@
     python experiments/discover/concealed.py --scoreboard            # the targets over every stored set
     python experiments/discover/concealed.py --scoreboard --chroma-weight W  # default weight against W, side by side
     python experiments/discover/concealed.py --scoreboard --albedo-passes N  # the default segmentation against N passes
+    python experiments/discover/concealed.py --scoreboard [--albedo-passes N] --exposure  # the default against the exposure
     python experiments/discover/concealed.py --scoreboard --with NAME  # without and with one more candidate, side by side
     python experiments/discover/concealed.py --scoreboard --edge-px E  # exact masks at EDGE_PX and at E, side by side
     python experiments/discover/concealed.py --rules                 # what each test alone kept out, right and wrong
@@ -58,6 +60,7 @@ from torchfit.discover_video import (
     discover_video,
 )
 from torchfit.effects import EFFECTS
+from torchfit.search import Exposure
 from torchfit.shape import load_shape
 from torchfit.video import TRANSFERS, SegmentationSettings
 
@@ -70,14 +73,22 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
-            transfer: str | None = None) -> dict:
+            transfer: str | None = None, exposure: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer)) if v is not None}
     settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
-                          edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print)
+                          edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
+                          exposure=recording_exposure(truth) if exposure else None)
+
+
+def recording_exposure(truth: dict) -> Exposure:
+    """The exposure a generated recording was rendered with (``truth.json``'s ``render``): its
+    sub-frames over ``exposure_frac`` of the frame interval, or none for a sharp recording."""
+    taps = int(truth["render"]["blur_subframes"])
+    return Exposure(float(truth["render"]["exposure_frac"]), taps) if taps > 1 else Exposure(0.0)
 
 
 def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
@@ -583,7 +594,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
-         read_as: str | None = None) -> None:
+         read_as: str | None = None, exposure: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -596,6 +607,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + (f"_albedo{albedo_passes}" if albedo_passes is not None else "")
+                            + ("_exposure" if exposure else "")
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
@@ -616,7 +628,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
-                          albedo_passes, read_as or transfer)
+                          albedo_passes, read_as or transfer, exposure)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -649,6 +661,9 @@ if __name__ == "__main__":
                     help="segment with this SegmentationSettings.chroma_weight (results/concealed..._chroma<W>/)")
     ap.add_argument("--albedo-passes", type=int, metavar="N",
                     help="segment with this SegmentationSettings.albedo_passes (results/concealed..._albedo<N>/)")
+    ap.add_argument("--exposure", action="store_true",
+                    help="compare the soft coverage with the silhouette averaged over the recording's exposure "
+                         "(truth.json's render; results/concealed..._exposure/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -670,9 +685,12 @@ if __name__ == "__main__":
     if not (args.edge_px >= 0):
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
-                            or args.crf is not None or args.albedo_passes is not None):
-        if args.albedo_passes is not None:
-            suffix, label = f"_albedo{args.albedo_passes}", f"albedo passes {args.albedo_passes}"
+                            or args.crf is not None or args.albedo_passes is not None or args.exposure):
+        if args.albedo_passes is not None or args.exposure:
+            suffix = (f"_albedo{args.albedo_passes}" if args.albedo_passes is not None else "") + (
+                "_exposure" if args.exposure else "")
+            label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
+                              + (["coverage against the exposure"] if args.exposure else []))
             text = side_by_side(suffix, label, column="segmentation")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
@@ -718,4 +736,4 @@ if __name__ == "__main__":
                  "--shipped or --true-masks); --read-as only with --transfer")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
-         args.read_as)
+         args.read_as, args.exposure)

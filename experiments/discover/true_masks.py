@@ -28,7 +28,7 @@ from torchfit.discover_video import VideoProblem
 from torchfit.paper._recording import load_recording
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
-from torchfit.video import SegmentationSettings, _boxes, load_observation
+from torchfit.video import SegmentationSettings, _boxes, load_observation, raw_moments
 
 HERE = Path(__file__).resolve().parent
 
@@ -61,7 +61,7 @@ def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings
 
 def with_masks(observation, masks: np.ndarray):
     """``observation`` with (T, H, W) bool ``masks`` (and their boxes) in place of its own."""
-    return dataclasses.replace(observation, masks=masks, boxes=_boxes(masks))
+    return dataclasses.replace(observation, masks=masks, boxes=_boxes(masks), coverage_moments=raw_moments(masks))
 
 
 def problem_of(observation, shape, camera: Camera):
