@@ -566,13 +566,17 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
     assert int(frozen.sum()) == (3 if ball else 0)  # the offset reveals a sphere's spin, none its orientation
 
 
-def test_per_candidate_clock_and_lens_render_as_each_alone():
+@pytest.mark.parametrize("exposure", [None, (0.5, 5)])
+def test_per_candidate_clock_and_lens_render_as_each_alone(exposure):
     """Rows with their own clock and lens (one value per row) render as each row alone with the
-    values shared: the same areas, centroids and covariances (float64, to rounding)."""
+    values shared: the same areas, centroids and covariances (float64, to rounding), also when
+    each is averaged over an exposure (its sub-frames' rows must stay with their candidate)."""
     import torchfit.discover_video as dv
+    from torchfit.search import Exposure
 
     problem, truth = _synthetic("time_scale", {"time_scale": 1.02})
-    video = dv.VideoProblem(problem)
+    video = dv.VideoProblem(problem) if exposure is None else dv.VideoProblem(
+        problem, exposure=Exposure(*exposure), coverage=torch.zeros(len(problem.times), 6, dtype=F64))
     one = truth.select(torch.zeros(1, dtype=torch.long))
     three = truth.select(torch.zeros(3, dtype=torch.long))
     scales, k1, k2 = (torch.tensor(v, dtype=F64) for v in ([0.97, 1.0, 1.03], [-0.2, 0.0, 0.1], [0.05, 0.0, -0.03]))

@@ -555,13 +555,14 @@ def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects:
     gravity = cands.gravity(problem.g).to(rot)
     poses = [(rot, position, motion)] + [exposure_poses(rot, position, motion, body.com, gravity, sign * half)
                                          for sign in (-1.0, 1.0)]
-    rot, position, motion = (torch.stack(parts, 0) for parts in zip(*poses))  # (3, B, T, ...)
+    # (B, 3, T, ...): rows stay candidate-major, as per-candidate lens and shutter parameters need
+    rot, position, motion = (torch.stack(parts, 1) for parts in zip(*poses))
     area, centroid, cov = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3),
                                              position.reshape(-1, 3), *camera_effects(problem, effects, motion))
-    raw = raw_from_central(area, centroid, cov).reshape(3, batch, frames, 6)
+    raw = raw_from_central(area, centroid, cov).reshape(batch, 3, frames, 6)
     end = exposure.end_weight
     return tuple(m.reshape(batch, frames, *m.shape[1:])
-                 for m in central_moments(((1 - 2 * end) * raw[0] + end * (raw[1] + raw[2])).reshape(-1, 6)))
+                 for m in central_moments(((1 - 2 * end) * raw[:, 0] + end * (raw[:, 1] + raw[:, 2])).reshape(-1, 6)))
 
 
 def candidate_silhouettes(problem: Problem, cands: Candidates, frames: int, crop: int, sigma: float | None,
