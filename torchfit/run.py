@@ -68,9 +68,10 @@ class ConfigError(ValueError):
 
 
 def _segmentation_settings(node) -> SegmentationSettings:
-    """``data.segmentation`` (method, transfer) as :class:`SegmentationSettings`."""
+    """``data.segmentation`` (method, transfer, albedo_passes) as :class:`SegmentationSettings`."""
     try:
-        return SegmentationSettings(method=str(node.method), transfer=str(node.transfer))
+        return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
+                                    albedo_passes=int(node.get("albedo_passes", 0)))
     except ValueError as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 
