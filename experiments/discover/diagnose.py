@@ -20,6 +20,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py stretch-sources FRESH NAME...  # the same, remade without motion blur, ~1 min each
     python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
     python experiments/discover/diagnose.py codec FRESH NAME...        # remade with other H.264 encodings (CODECS), ~2 min each
+    python experiments/discover/diagnose.py search SET NAME... SETTING=V...  # the search on default and on changed masks, ~2 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -42,6 +43,9 @@ from segmentation_error import frame_errors, mask_centroids, measure, segment_wa
 from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
+from torchfit.rotation import quat_to_matrix
+from torchfit.search import SearchSettings, candidate_losses
+from torchfit.search import fit as search_fit
 from torchfit.video import SegmentationSettings
 
 HERE = Path(__file__).resolve().parent
@@ -671,6 +675,44 @@ def contrast(folder: Path) -> dict:
                   "share_below_20": rows[:, 2], "share_below_30": rows[:, 3]}
     return {name: float(np.corrcoef(error, value)[0, 1]) for name, value in predictors.items()}
 
+def _rotation_errors(cands, shape, truth: dict) -> torch.Tensor:
+    """(B,) degrees between each candidate's orientation at t = 0 and the true one, modulo the
+    shape's symmetries."""
+    rot = quat_to_matrix(cands.quat().double())
+    symmetries = torch.as_tensor(shape.symmetries, dtype=torch.float64)
+    relative = (rot[:, None] @ symmetries[None]).transpose(-1, -2) @ torch.tensor(truth["params"]["R"], dtype=torch.float64)
+    cos = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+    return torch.rad2deg(torch.acos(cos)).min(1).values
+
+
+def search(folder: Path, settings=None) -> dict:
+    """torchfit's search on the default segmentation's masks and on those of ``settings``: per
+    stage the best loss and the candidate nearest the true orientation (its rotation error, rank
+    and loss); then each search's best candidate scored on both masks (the polish's render, all
+    frames). A search that lost the true basin ends with a loss above the other's best on its own masks."""
+    truth, shape, camera = recording_parts(folder)
+    problems = {label: load_problem(folder, shape, camera, False, given)[1]
+                for label, given in (("default", None), ("changed", settings))}
+    knobs, out = SearchSettings(), {}
+    for label, problem in problems.items():
+        stages = []
+
+        def snapshot(stage, cands, losses, stages=stages):
+            errors = _rotation_errors(cands, shape, truth)
+            near = int(torch.argmin(errors))
+            stages.append({"stage": stage, "candidates": len(cands), "best_loss": float(losses[0]),
+                           "best_rotation_deg": float(errors[0]), "nearest_rotation_deg": float(errors[near]),
+                           "nearest_rank": near, "nearest_loss": float(losses[near])})
+        result = search_fit(problem, knobs, snapshot=snapshot)
+        best = result.candidates.select(torch.zeros(1, dtype=torch.long))
+        with torch.no_grad():
+            scored = {masks: float(candidate_losses(other, best, len(other.times), knobs.polish_crop,
+                                                    knobs.polish_sigma)[0]) for masks, other in problems.items()}
+        out[label] = {"stages": stages, "rotation_deg": float(_rotation_errors(best, shape, truth)[0]),
+                      "loss_on": scored}
+    return out
+
+
 def _setting_args(args: list[str]) -> dict:
     """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
     return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
@@ -725,13 +767,15 @@ def main(argv: list[str]) -> None:
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
-                "contrast": contrast, "clip": clip}
+                "contrast": contrast, "clip": clip, "search": search}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip")
-    # blur's segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
-    changes = _setting_args(argv[2:]) if command == "blur" else {}
+    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search")
+    # blur's and search's segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
+    changes = _setting_args(argv[2:]) if command in ("blur", "search") else {}
+    if command == "search" and not changes:
+        sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
     label = "".join(f"_{k}{v:g}" for k, v in changes.items())
     for name in names:
