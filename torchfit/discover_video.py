@@ -66,13 +66,13 @@ from .residuals import (
 from .search import (
     SCALES,
     Candidates,
+    Exposure,
     FitResult,
     Problem,
-    Exposure,
     SearchSettings,
-    candidate_poses,
     camera_effects,
     candidate_moments,
+    candidate_poses,
     fit,
 )
 from .video import _boxes, raw_moments
