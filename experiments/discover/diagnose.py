@@ -21,6 +21,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
     python experiments/discover/diagnose.py codec FRESH NAME...        # remade with other H.264 encodings (CODECS), ~2 min each
     python experiments/discover/diagnose.py search SET NAME... SETTING=V...  # the search on default and on changed masks, ~2 min each
+    python experiments/discover/diagnose.py exposure SET NAME... [SETTING=V...]  # the baseline at other exposures than the recording's, ~2 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -39,12 +40,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from concealed import recording_exposure
 from segmentation_error import frame_errors, mask_centroids, measure, segment_watching
 from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
 from torchfit.rotation import quat_to_matrix
-from torchfit.search import SearchSettings, candidate_losses
+from torchfit.search import Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
 from torchfit.video import SegmentationSettings
 
@@ -713,6 +715,32 @@ def search(folder: Path, settings=None) -> dict:
     return out
 
 
+EXPOSURE_GRID = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def exposure(folder: Path, settings=None) -> dict:
+    """Could the exposure be read from the video? The baseline (one search, then discover's
+    refit) with the soft coverage compared with the silhouette averaged over each fraction of
+    ``EXPOSURE_GRID`` (the recording's own sub-frame count): per fraction the RMS of each residual
+    channel over the used frames (outliers left out; px for the centroid, relative for the
+    others) and the fit's chi-squared per observation against its own noise floors."""
+    truth, shape, camera = recording_parts(folder)
+    observation, problem, span = load_problem(folder, shape, camera, False, settings)
+    coverage = torch.as_tensor(observation.coverage_moments[span])
+    own = recording_exposure(truth)
+    searched = search_fit(problem, SearchSettings())
+    rows = {}
+    for fraction in EXPOSURE_GRID:
+        video = dv.VideoProblem(problem, exposure=Exposure(fraction, own.taps), coverage=coverage)
+        base = video.fit((), None, searched)
+        used = video.problem.used.cpu().numpy().astype(bool)
+        used[video.outliers] = False
+        rows[f"{fraction:g}"] = {
+            "rms": {name: float(np.sqrt(np.nanmean(values[used] ** 2))) for name, values in base.payload["channels"].items()},
+            "chi2_per_obs": base.rss / base.n_obs, "noise": video.noise, "edge_px": list(base.payload["model"].edge)}
+    return {"true_exposure": own.fraction, "taps": own.taps, "fractions": rows}
+
+
 def _setting_args(args: list[str]) -> dict:
     """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
     return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
@@ -767,13 +795,13 @@ def main(argv: list[str]) -> None:
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
-                "contrast": contrast, "clip": clip, "search": search}
+                "contrast": contrast, "clip": clip, "search": search, "exposure": exposure}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search")
-    # blur's and search's segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
-    changes = _setting_args(argv[2:]) if command in ("blur", "search") else {}
+    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure")
+    # the segmentation settings of blur, search and exposure, SETTING=V after the names (e.g. albedo_passes=1)
+    changes = _setting_args(argv[2:]) if command in ("blur", "search", "exposure") else {}
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
