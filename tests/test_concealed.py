@@ -487,3 +487,16 @@ def test_shutter_set_is_the_controls_throws_through_a_rolling_shutter(mods):
     times = set(mr.all_times(specs["shutter_tshape"]).tolist())
     tf, ts = mr.sample_times(specs["shutter_tshape"])
     assert {float(ts[3, 0] + bands[7][2]), float(tf[5] + bands[-1][2]), float(tf[0])} <= times
+
+
+def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
+    """``concealed.py --exposure --exposure-fraction F``: the recording's own sub-frame count with F
+    in place of its exposure, in a results folder of its own; without F the recording's own."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    truth = {"render": {"blur_subframes": 5, "exposure_frac": 0.5}}
+    own, guess = conc.recording_exposure(truth), conc.recording_exposure(truth, 0.25)
+    assert (own.fraction, own.taps) == (0.5, 5)
+    assert (guess.fraction, guess.taps) == (0.25, 5)
+    assert conc.recording_exposure({"render": {"blur_subframes": 1, "exposure_frac": 0.5}}).fraction == 0.0
+    assert (conc.exposure_suffix(None), conc.exposure_suffix(0.25)) == ("_exposure", "_exposure0.25")

@@ -73,7 +73,7 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
-            transfer: str | None = None, exposure: bool = False) -> dict:
+            transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer)) if v is not None}
@@ -81,14 +81,21 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
-                          exposure=recording_exposure(truth) if exposure else None)
+                          exposure=recording_exposure(truth, exposure_fraction) if exposure else None)
 
 
-def recording_exposure(truth: dict) -> Exposure:
+def recording_exposure(truth: dict, fraction: float | None = None) -> Exposure:
     """The exposure a generated recording was rendered with (``truth.json``'s ``render``): its
-    sub-frames over ``exposure_frac`` of the frame interval, or none for a sharp recording."""
+    sub-frames over ``exposure_frac`` of the frame interval, or none for a sharp recording;
+    ``fraction`` in place of ``exposure_frac`` (a wrong guess of it) when given."""
     taps = int(truth["render"]["blur_subframes"])
-    return Exposure(float(truth["render"]["exposure_frac"]), taps) if taps > 1 else Exposure(0.0)
+    own = float(truth["render"]["exposure_frac"]) if fraction is None else fraction
+    return Exposure(own, taps) if taps > 1 else Exposure(0.0 if fraction is None else fraction)
+
+
+def exposure_suffix(fraction: float | None) -> str:
+    """The results folder's suffix of a run with the exposure: the recording's own, or ``fraction``."""
+    return "_exposure" + ("" if fraction is None else f"{fraction:g}")
 
 
 def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
@@ -594,7 +601,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
-         read_as: str | None = None, exposure: bool = False) -> None:
+         read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -607,7 +614,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + (f"_albedo{albedo_passes}" if albedo_passes is not None else "")
-                            + ("_exposure" if exposure else "")
+                            + (exposure_suffix(exposure_fraction) if exposure else "")
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
@@ -628,7 +635,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
-                          albedo_passes, read_as or transfer, exposure)
+                          albedo_passes, read_as or transfer, exposure, exposure_fraction)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -664,6 +671,9 @@ if __name__ == "__main__":
     ap.add_argument("--exposure", action="store_true",
                     help="compare the soft coverage with the silhouette averaged over the recording's exposure "
                          "(truth.json's render; results/concealed..._exposure/)")
+    ap.add_argument("--exposure-fraction", type=float, metavar="F",
+                    help="with --exposure: this fraction of the frame interval instead of the recording's own, "
+                         "as a user's guess would be (results/concealed..._exposure<F>/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -688,9 +698,11 @@ if __name__ == "__main__":
                             or args.crf is not None or args.albedo_passes is not None or args.exposure):
         if args.albedo_passes is not None or args.exposure:
             suffix = (f"_albedo{args.albedo_passes}" if args.albedo_passes is not None else "") + (
-                "_exposure" if args.exposure else "")
+                exposure_suffix(args.exposure_fraction) if args.exposure else "")
+            against = ("the exposure" if args.exposure_fraction is None
+                       else f"an exposure of {args.exposure_fraction:g}")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
-                              + (["coverage against the exposure"] if args.exposure else []))
+                              + ([f"coverage against {against}"] if args.exposure else []))
             text = side_by_side(suffix, label, column="segmentation")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
@@ -721,6 +733,8 @@ if __name__ == "__main__":
         sys.exit(print(board))
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
+    if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
+        ap.error(f"--exposure-fraction needs --exposure and a fraction in [0, 1], got {args.exposure_fraction}")
     if args.chroma_weight is not None and (args.true_masks or args.shipped or not args.chroma_weight > 0):
         ap.error(f"--chroma-weight needs a positive weight and segmented concealed recordings, got {args.chroma_weight}")
     if args.shutter and (args.fresh or args.shipped or args.chroma_weight is not None):
@@ -736,4 +750,4 @@ if __name__ == "__main__":
                  "--shipped or --true-masks); --read-as only with --transfer")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
-         args.read_as, args.exposure)
+         args.read_as, args.exposure, args.exposure_fraction)
