@@ -37,6 +37,7 @@ def mods():
     mr = _load("make_recordings", RECORDINGS / "make_recordings.py")
     mr.offscreen_gl()  # before mujoco is imported
     pytest.importorskip("mujoco")
+    sys.path.insert(0, str(CONCEALED.parent))  # make_concealed.py imports true_masks from its folder
     mc = _load("make_concealed", CONCEALED)
     return mr, mc
 
