@@ -89,8 +89,9 @@ def recording_exposure(truth: dict, fraction: float | None = None) -> Exposure:
     sub-frames over ``exposure_frac`` of the frame interval, or none for a sharp recording;
     ``fraction`` in place of ``exposure_frac`` (a wrong guess of it) when given."""
     taps = int(truth["render"]["blur_subframes"])
-    own = float(truth["render"]["exposure_frac"]) if fraction is None else fraction
-    return Exposure(own, taps) if taps > 1 else Exposure(0.0 if fraction is None else fraction)
+    if fraction is None:
+        fraction = float(truth["render"]["exposure_frac"]) if taps > 1 else 0.0
+    return Exposure(fraction, taps if taps > 1 else 0)
 
 
 def exposure_suffix(fraction: float | None) -> str:
