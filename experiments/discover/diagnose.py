@@ -45,7 +45,7 @@ from segmentation_error import frame_errors, mask_centroids, measure, segment_wa
 from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
-from torchfit.rotation import quat_to_matrix
+from torchfit.rotation import quat_to_matrix, rotation_angle
 from torchfit.search import Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
 from torchfit.video import SegmentationSettings
@@ -677,14 +677,12 @@ def contrast(folder: Path) -> dict:
                   "share_below_20": rows[:, 2], "share_below_30": rows[:, 3]}
     return {name: float(np.corrcoef(error, value)[0, 1]) for name, value in predictors.items()}
 
+
 def _rotation_errors(cands, shape, truth: dict) -> torch.Tensor:
     """(B,) degrees between each candidate's orientation at t = 0 and the true one, modulo the
-    shape's symmetries."""
-    rot = quat_to_matrix(cands.quat().double())
-    symmetries = torch.as_tensor(shape.symmetries, dtype=torch.float64)
-    relative = (rot[:, None] @ symmetries[None]).transpose(-1, -2) @ torch.tensor(truth["params"]["R"], dtype=torch.float64)
-    cos = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-    return torch.rad2deg(torch.acos(cos)).min(1).values
+    shape's symmetries (:func:`torchfit.rotation.rotation_angle`, as the fit's report scores it)."""
+    rot = quat_to_matrix(cands.quat().double())[:, None] @ torch.as_tensor(shape.symmetries, dtype=torch.float64)
+    return torch.rad2deg(rotation_angle(torch.tensor(truth["params"]["R"], dtype=torch.float64), rot)).min(1).values
 
 
 def search(folder: Path, settings=None) -> dict:
