@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from true_masks import load_problem, recording_parts
 
-from torchfit.rotation import quat_to_matrix
+from torchfit.rotation import quat_to_matrix, rotation_angle
 from torchfit.search import SearchSettings, fit
 
 HERE = Path(__file__).resolve().parent
@@ -35,11 +35,10 @@ def outcome(folder: Path) -> dict:
     clock = time.perf_counter()
     result = fit(problem, SearchSettings())
     rot = quat_to_matrix(result.candidates.quat()[:1].double())[0]
-    relative = (rot @ torch.as_tensor(shape.symmetries, dtype=torch.float64)).transpose(-1, -2) \
-        @ torch.tensor(truth["params"]["R"], dtype=torch.float64)  # (K, 3, 3)
-    cos = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+    error = rotation_angle(rot @ torch.as_tensor(shape.symmetries, dtype=torch.float64),
+                           torch.tensor(truth["params"]["R"], dtype=torch.float64))  # (K,) per symmetry
     return {"recording": f"{folder.parent.name}/{folder.name}", "loss": float(result.losses[0]),
-            "rotation_error_deg": float(torch.rad2deg(torch.acos(cos)).min()),
+            "rotation_error_deg": float(torch.rad2deg(error).min()),
             "spin": result.candidates.omega[0].tolist(), "true_spin": truth["params"]["angular_velocity"],
             "seconds": time.perf_counter() - clock}
 
