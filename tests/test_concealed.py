@@ -501,3 +501,36 @@ def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
     assert (guess.fraction, guess.taps) == (0.25, 5)
     assert conc.recording_exposure({"render": {"blur_subframes": 1, "exposure_frac": 0.5}}).fraction == 0.0
     assert (conc.exposure_suffix(None), conc.exposure_suffix(0.25)) == ("_exposure", "_exposure0.25")
+
+
+def test_blur_estimates_recover_a_known_exposure():
+    """``diagnose.py blur-estimate``'s two pieces on synthetic answers: the ramp width of a ramp
+    alone is its length and of a Gaussian alone ``6 sigma / sqrt(pi)``; the along-motion
+    variance of a blurred silhouette over the sharp one gives back the exposure it was made with
+    (the excess across the motion, here a constant 0.3 px², does not count)."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    widths = diag._ramp_width(np.array([4.0, 12.0]), 0.01)
+    assert widths == pytest.approx([4.0, 12.0], rel=1e-3)
+    assert diag._ramp_width(np.array([0.0]), 1.5)[0] == pytest.approx(6 * 1.5 / np.sqrt(np.pi), rel=1e-4)
+    assert diag._ramp_width(np.array([6.0]), 1.0)[0] > diag._ramp_width(np.array([4.0]), 1.0)[0]
+
+    rng = np.random.default_rng(3)
+    frames, w, fraction = 30, 0.25, 0.4
+    velocity = rng.normal(0, 8, (frames, 2))
+    along = velocity / np.linalg.norm(velocity, axis=1, keepdims=True)
+    across = np.stack((-along[:, 1], along[:, 0]), 1)
+    sharp = np.array([[30.0, 4.0], [4.0, 20.0]])
+    blurred = (sharp + w / 2 * fraction**2 * np.einsum("ti,tj->tij", velocity, velocity)
+               + 0.3 * np.einsum("ti,tj->tij", across, across))
+
+    def raw(cov, area=500.0, centre=(100.0, 80.0)):
+        cov = np.broadcast_to(cov, (frames, 2, 2))
+        cu, cv = centre
+        return np.stack([np.full(frames, area), np.full(frames, area * cu), np.full(frames, area * cv),
+                         area * (cov[:, 0, 0] + cu * cu), area * (cov[:, 0, 1] + cu * cv),
+                         area * (cov[:, 1, 1] + cv * cv)], -1)
+
+    used = np.ones(frames, bool)
+    assert diag._along_motion_fraction(raw(blurred), raw(sharp), velocity, used, w) == pytest.approx(fraction, rel=1e-6)
+    assert diag._along_motion_fraction(raw(sharp), raw(sharp), velocity, used, w) == pytest.approx(0.0, abs=1e-6)

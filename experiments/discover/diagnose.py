@@ -21,7 +21,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py ramp FRESH NAME [SOURCE...] [SETTING=V...]  # coverage on a blurred edge's ramp against the truth, ~1 min each
     python experiments/discover/diagnose.py codec FRESH NAME...        # remade with other H.264 encodings (CODECS), ~2 min each
     python experiments/discover/diagnose.py search SET NAME... SETTING=V...  # the search on default and on changed masks, ~2 min each
-    python experiments/discover/diagnose.py exposure SET NAME... [SETTING=V...]  # the baseline at other exposures than the recording's, ~2 min each
+    python experiments/discover/diagnose.py exposure SET NAME... [SETTING=V...] [fractions=F1,F2,...]  # the baseline at other exposures than the recording's (default 0, 0.25, 0.5, 0.75, 1), ~2 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -716,19 +716,20 @@ def search(folder: Path, settings=None) -> dict:
 EXPOSURE_GRID = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def exposure(folder: Path, settings=None) -> dict:
+def exposure(folder: Path, settings=None, fractions: tuple[float, ...] = EXPOSURE_GRID) -> dict:
     """Could the exposure be read from the video? The baseline (one search, then discover's
-    refit) with the soft coverage compared with the silhouette averaged over each fraction of
-    ``EXPOSURE_GRID`` (the recording's own sub-frame count): per fraction the RMS of each residual
-    channel over the used frames (outliers left out; px for the centroid, relative for the
-    others) and the fit's chi-squared per observation against its own noise floors."""
+    refit) with the soft coverage compared with the silhouette averaged over each of
+    ``fractions`` (default ``EXPOSURE_GRID``; the recording's own sub-frame count): per fraction
+    the RMS of each residual channel over the used frames (outliers left out; px for the
+    centroid, relative for the others) and the fit's chi-squared per observation against its own
+    noise floors."""
     truth, shape, camera = recording_parts(folder)
     observation, problem, span = load_problem(folder, shape, camera, False, settings)
     coverage = torch.as_tensor(observation.coverage_moments[span])
     own = recording_exposure(truth)
     searched = search_fit(problem, SearchSettings())
     rows = {}
-    for fraction in EXPOSURE_GRID:
+    for fraction in fractions:
         video = dv.VideoProblem(problem, exposure=Exposure(fraction, own.taps), coverage=coverage)
         base = video.fit((), None, searched)
         used = video.problem.used.cpu().numpy().astype(bool)
@@ -737,6 +738,110 @@ def exposure(folder: Path, settings=None) -> dict:
             "rms": {name: float(np.sqrt(np.nanmean(values[used] ** 2))) for name, values in base.payload["channels"].items()},
             "chi2_per_obs": base.rss / base.n_obs, "noise": video.noise, "edge_px": list(base.payload["model"].edge)}
     return {"true_exposure": own.fraction, "taps": own.taps, "fractions": rows}
+
+
+def _along_motion_fraction(observed: np.ndarray, reference: np.ndarray, velocity: np.ndarray, used: np.ndarray,
+                           end_weight: float) -> float:
+    """The exposure fraction ``e`` that the extra variance along the motion of ``observed`` over
+    ``reference`` ((T, 6) raw moments) gives: a translation of ``v`` pixels per frame spreads a
+    silhouette's centroid over the exposure with variance ``(w / 2) e^2 |v|^2`` along ``v`` (``w``
+    :attr:`torchfit.search.Exposure.end_weight`), so ``e^2`` is the least-squares slope over the
+    ``used`` frames of the excess variance along ``velocity`` ((T, 2) px/frame) on ``(w / 2) |v|^2``."""
+    from torchfit.losses import central_moments
+
+    def covariance(raw):
+        return central_moments(torch.as_tensor(raw, dtype=torch.float64))[2].numpy()
+
+    speed = np.linalg.norm(velocity, axis=1)
+    along = velocity / np.maximum(speed, 1e-9)[:, None]
+    excess = np.einsum("ti,tij,tj->t", along, covariance(observed) - covariance(reference), along)[used]
+    basis = end_weight / 2 * speed[used] ** 2
+    return float(np.sqrt(max((excess * basis).sum() / (basis * basis).sum(), 0.0)))
+
+
+def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
+    """``6 * integral F (1 - F)`` across an edge whose profile ``F`` is a ramp ``length`` px long
+    ((N,)) smoothed by a Gaussian of ``sigma`` px: ``length`` for the ramp alone, ``3.39 sigma``
+    for the Gaussian alone."""
+    from scipy.special import ndtr
+
+    def antiderivative(x):  # of the normal CDF
+        return x * ndtr(x) + np.exp(-x * x / 2) / np.sqrt(2 * np.pi)
+
+    z = np.linspace(-30.0, 30.0, 6001)[None]
+    length = np.maximum(np.asarray(length, np.float64)[:, None], 1e-6)  # (N, 1)
+    profile = sigma / length * (antiderivative((z + length / 2) / sigma) - antiderivative((z - length / 2) / sigma))
+    return 6 * (profile * (1 - profile)).sum(-1) * (z[0, 1] - z[0, 0])
+
+
+def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
+    """Can the exposure be read from the blur alone, without the fit? Two estimates from the
+    segmentation, each against the recording's true fraction.
+
+    ``moments``: :func:`_along_motion_fraction` (velocities from the true centroids) of four
+    pairs: the exact exposure average of the true silhouette's moments over the exact moments at
+    the frame's time (the relation itself), the segmented soft coverage (as cached, within
+    ``COVERAGE_NEAR_PX`` of the mask) over the exact frame-time moments, the coverage over the
+    segmented mask (an estimate from the video alone), and the exact average over the mask.
+
+    ``ramp``: the coverage's edge ramp (video alone). Per pixel of the coverage between 0.02
+    and 0.98 the edge's normal ``n`` is its gradient's; a ramp ``L`` long along the motion is
+    ``L |n . u|`` long along the normal. Pixels binned (``bins`` quantiles) by ``|v| |n . u|``
+    (``v`` the mask centroid's px per frame): per bin ``6 sum c (1 - c) / sum |grad c|``, the
+    ramp's width (:func:`_ramp_width`), fitted over ``e`` (0.01 steps) and a Gaussian's ``sigma``."""
+    from scipy import ndimage
+
+    from torchfit.render import RenderMesh, silhouette_moments
+    from torchfit.video import COVERAGE_NEAR_PX, raw_moments
+
+    truth, shape, camera = recording_parts(folder)
+    own = recording_exposure(truth)
+    per_frame = truth["per_frame"]
+    sub_position, sub_rotation = _subframe_poses(truth)
+    frames, subframes = sub_position.shape[:2]
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    with torch.no_grad():
+        mid = _raw(silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
+                                      torch.as_tensor(np.array(per_frame["position"])))).numpy()
+        averaged = _raw(silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
+                                           torch.as_tensor(sub_position.reshape(-1, 3)))).numpy()
+    averaged = averaged.reshape(frames, subframes, 6).mean(1)
+    masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
+    covers = [np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=COVERAGE_NEAR_PX)
+              for c, m in zip(kept, masks)]
+    used = _whole(masks)
+    used[[0, -1]] = False
+    velocity = np.gradient(mid[:, 1:3] / mid[:, :1], axis=0)
+    w = own.end_weight
+    pairs = {"exact average / exact": (averaged, mid), "coverage / exact": (raw_moments(np.stack(covers)), mid),
+             "coverage / mask": (raw_moments(np.stack(covers)), raw_moments(masks)),
+             "exact average / mask": (averaged, raw_moments(masks))}
+    moments = {k: _along_motion_fraction(a, b, velocity, used, w) for k, (a, b) in pairs.items()}
+
+    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
+    mask_velocity = np.gradient(centre, axis=0)
+    x, ramp, grad = [], [], []
+    for t in np.flatnonzero(used):
+        c = np.clip(kept[t], 0.0, 1.0) * ndimage.binary_dilation(masks[t], iterations=6)
+        gy, gx = np.gradient(c)
+        g = np.hypot(gx, gy)
+        edge = (c > 0.02) & (c < 0.98) & (g > 0)
+        speed = np.linalg.norm(mask_velocity[t])
+        x.append(np.abs(gx[edge] * mask_velocity[t, 0] + gy[edge] * mask_velocity[t, 1]) / g[edge])
+        ramp.append((c * (1 - c))[edge])
+        grad.append(g[edge])
+    x, ramp, grad = map(np.concatenate, (x, ramp, grad))
+    which = np.clip(np.searchsorted(np.quantile(x, np.linspace(0, 1, bins + 1)), x, side="right") - 1, 0, bins - 1)
+    travel = np.array([np.average(x[which == b], weights=grad[which == b]) for b in range(bins)])
+    width = np.array([6 * ramp[which == b].sum() / grad[which == b].sum() for b in range(bins)])
+    lengths = np.linspace(0.0, 1.05 * travel.max(), 211)
+    tables = {float(sigma): _ramp_width(lengths, sigma) for sigma in np.linspace(0.2, 4.0, 39)}
+    fits = [(float(np.sqrt(np.mean((np.interp(e * travel, lengths, table) - width) ** 2))), float(e), sigma)
+            for e in np.linspace(0.0, 1.0, 101) for sigma, table in tables.items()]
+    rms, fraction, sigma = min(fits)
+    return {"true_exposure": own.fraction, "frames": int(used.sum()), "moments": moments,
+            "ramp": {"fraction": fraction, "sigma_px": sigma, "rms_px": rms,
+                     "travel_px": travel.tolist(), "width_px": width.tolist()}}
 
 
 def _setting_args(args: list[str]) -> dict:
@@ -793,21 +898,31 @@ def main(argv: list[str]) -> None:
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
-                "contrast": contrast, "clip": clip, "search": search, "exposure": exposure}
+                "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
+                "blur-estimate": blur_estimate}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
-    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure")
+    # exposure: fractions=F1,F2,... in place of EXPOSURE_GRID
+    fractions = [a for a in argv[2:] if a.startswith("fractions=")] if command == "exposure" else []
+    argv = [a for a in argv if a not in fractions]
+    several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
+                                  "blur-estimate")
     # the segmentation settings of blur, search and exposure, SETTING=V after the names (e.g. albedo_passes=1)
     changes = _setting_args(argv[2:]) if command in ("blur", "search", "exposure") else {}
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
     label = "".join(f"_{k}{v:g}" for k, v in changes.items())
+    if fractions:
+        grid = tuple(float(f) for f in fractions[-1].split("=", 1)[1].split(","))
+        label += "_fractions" + "_".join(f"{f:g}" for f in grid)
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
         extra = {"settings": SegmentationSettings(**changes)} if changes else {}
+        if fractions:
+            extra["fractions"] = grid
         result = commands[command](folder / name, *([] if several else argv[3:]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
