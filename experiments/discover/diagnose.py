@@ -774,6 +774,9 @@ def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
     return 6 * (profile * (1 - profile)).sum(-1) * (z[0, 1] - z[0, 0])
 
 
+NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than COVERAGE_NEAR_PX for the coverage's moments
+
+
 def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     """Can the exposure be read from the blur alone, without the fit? Two estimates from the
     segmentation, each against the recording's true fraction.
@@ -782,7 +785,9 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     pairs: the exact exposure average of the true silhouette's moments over the exact moments at
     the frame's time (the relation itself), the segmented soft coverage (as cached, within
     ``COVERAGE_NEAR_PX`` of the mask) over the exact frame-time moments, the coverage over the
-    segmented mask (an estimate from the video alone), and the exact average over the mask.
+    segmented mask (an estimate from the video alone), and the exact average over the mask; then
+    the coverage counted within each of ``NEAR_PX`` (4-neighbour steps) of the mask over the exact
+    frame-time moments.
 
     ``ramp``: the coverage's edge ramp (video alone). Per pixel of the coverage between 0.02
     and 0.98 the edge's normal ``n`` is its gradient's; a ramp ``L`` long along the motion is
@@ -817,6 +822,10 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
              "coverage / mask": (raw_moments(np.stack(covers)), raw_moments(masks)),
              "exact average / mask": (averaged, raw_moments(masks))}
     moments = {k: _along_motion_fraction(a, b, velocity, used, w) for k, (a, b) in pairs.items()}
+    for near in NEAR_PX:  # the coverage counted within other distances of the mask
+        wider = raw_moments(np.stack([np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=near)
+                                      for c, m in zip(kept, masks)]))
+        moments[f"coverage within {near} px / exact"] = _along_motion_fraction(wider, mid, velocity, used, w)
 
     centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
     mask_velocity = np.gradient(centre, axis=0)
