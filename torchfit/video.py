@@ -22,7 +22,7 @@ the static scene:
       too dark or too close to ``A`` in colour for step a, the shading comes from neighbours.
    The mask is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half
    covered exactly at its position at that time. Closed, largest component, holes filled.
-   The coverage itself, clipped to [0, 1] within ``COVERAGE_NEAR_PX`` of the mask, is kept as
+   The coverage itself, clipped to [0, 1] within ``SegmentationSettings.coverage_near_px`` of the mask, is kept as
    its raw moments (``Observation.coverage_moments``): moments are linear in coverage, so a
    blurred frame's are the exposure's average of the silhouette's (what ``discover`` compares
    with an exposure, :class:`torchfit.search.Exposure`).
@@ -67,8 +67,6 @@ KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 _CACHE_VERSION = 5
-# the soft coverage counts within this many pixels (4-neighbour steps) of the final mask
-COVERAGE_NEAR_PX = 4
 
 
 @dataclass(frozen=True)
@@ -107,6 +105,11 @@ class SegmentationSettings:
             segmentation's error on the concealed recordings but made discover's verdicts worse
             there (experiments/discover/HISTORY.md, *The albedo from covered pixels*), so it is
             off by default.
+        coverage_near_px: the soft coverage's moments (``Observation.coverage_moments``) count
+            the pixels within this many 4-neighbour steps of the final mask. A blurred edge's ramp
+            reaches past 4 at these recordings' speeds, so 4 reads short of the true blur; a wider
+            band keeps more background noise, which the clip to [0, 1] turns into mass
+            (experiments/discover/HISTORY.md, *Reading the exposure from the blur*).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
@@ -124,6 +127,7 @@ class SegmentationSettings:
     chroma_weight: float = 0.5
     transfer: str = "auto"
     albedo_passes: int = 0
+    coverage_near_px: int = 4
     morph_radius: int = 1
     min_area: int = 6
     second_component_frac: float = 0.5
@@ -146,6 +150,8 @@ class SegmentationSettings:
             raise ValueError(f"area_jump must be > 1, got {self.area_jump!r}")
         if self.albedo_passes < 0:
             raise ValueError(f"albedo_passes must be >= 0, got {self.albedo_passes!r}")
+        if self.coverage_near_px < 1:
+            raise ValueError(f"coverage_near_px must be >= 1, got {self.coverage_near_px!r}")
         if self.min_area < 1 or self.morph_radius < 0 or self.max_background_frames < 1:
             raise ValueError(
                 "min_area and max_background_frames must be >= 1 and morph_radius >= 0, got "
@@ -806,7 +812,7 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     for t in range(len(frames)):
         if masks[t].any():
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
-            near = ndimage.binary_dilation(masks[t], iterations=COVERAGE_NEAR_PX)
+            near = ndimage.binary_dilation(masks[t], iterations=settings.coverage_near_px)
             cover_moments[t] = raw_moments((np.clip(covers[t], 0.0, 1.0) * near)[None])[0]
     return {"masks": masks, "background": background_bgr, "second_frac": second_frac,
             "coverage_moments": cover_moments}

@@ -774,7 +774,7 @@ def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
     return 6 * (profile * (1 - profile)).sum(-1) * (z[0, 1] - z[0, 0])
 
 
-NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than COVERAGE_NEAR_PX for the coverage's moments
+NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than the settings' coverage_near_px for the coverage's moments
 
 
 def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
@@ -784,7 +784,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     ``moments``: :func:`_along_motion_fraction` (velocities from the true centroids) of four
     pairs: the exact exposure average of the true silhouette's moments over the exact moments at
     the frame's time (the relation itself), the segmented soft coverage (as cached, within
-    ``COVERAGE_NEAR_PX`` of the mask) over the exact frame-time moments, the coverage over the
+    ``coverage_near_px`` of the mask) over the exact frame-time moments, the coverage over the
     segmented mask (an estimate from the video alone), and the exact average over the mask; then
     the coverage counted within each of ``NEAR_PX`` (4-neighbour steps) of the mask over the exact
     frame-time moments.
@@ -797,7 +797,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     from scipy import ndimage
 
     from torchfit.render import RenderMesh, silhouette_moments
-    from torchfit.video import COVERAGE_NEAR_PX, raw_moments
+    from torchfit.video import raw_moments
 
     truth, shape, camera = recording_parts(folder)
     own = recording_exposure(truth)
@@ -812,7 +812,8 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
                                            torch.as_tensor(sub_position.reshape(-1, 3)))).numpy()
     averaged = averaged.reshape(frames, subframes, 6).mean(1)
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
-    covers = [np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=COVERAGE_NEAR_PX)
+    band = (settings or SegmentationSettings()).coverage_near_px
+    covers = [np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=band)
               for c, m in zip(kept, masks)]
     used = _whole(masks)
     used[[0, -1]] = False
