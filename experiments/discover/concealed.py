@@ -11,6 +11,7 @@
     python experiments/discover/concealed.py --chroma-weight W [...]  # segmented with another chroma weight
     python experiments/discover/concealed.py --albedo-passes N [...]  # the albedo from covered pixels (N passes)
     python experiments/discover/concealed.py --exposure [...]         # the soft coverage against the exposure's average
+    python experiments/discover/concealed.py --exposure --coverage-near-px N [...]  # the coverage counted within N px of the mask
     python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --transfer T [--read-as R] [...] # the set stored through camera curve T (make_concealed.py --transfer T), segmented as T (or as R)
@@ -73,10 +74,11 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
-            transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None) -> dict:
+            transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
+            coverage_near_px: int | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
-                                 ("transfer", transfer)) if v is not None}
+                                 ("transfer", transfer), ("coverage_near_px", coverage_near_px)) if v is not None}
     settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
@@ -602,7 +604,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
-         read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None) -> None:
+         read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
+         coverage_near_px: int | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -616,6 +619,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + (f"_albedo{albedo_passes}" if albedo_passes is not None else "")
                             + (exposure_suffix(exposure_fraction) if exposure else "")
+                            + (f"_near{coverage_near_px}" if coverage_near_px is not None else "")
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
@@ -636,7 +640,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
-                          albedo_passes, read_as or transfer, exposure, exposure_fraction)
+                          albedo_passes, read_as or transfer, exposure, exposure_fraction, coverage_near_px)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -672,6 +676,9 @@ if __name__ == "__main__":
     ap.add_argument("--exposure", action="store_true",
                     help="compare the soft coverage with the silhouette averaged over the recording's exposure "
                          "(truth.json's render; results/concealed..._exposure/)")
+    ap.add_argument("--coverage-near-px", type=int, metavar="N",
+                    help="with --exposure: the soft coverage counted within N px of the mask instead of 4 "
+                         "(SegmentationSettings.coverage_near_px; results/concealed..._exposure_near<N>/)")
     ap.add_argument("--exposure-fraction", type=float, metavar="F",
                     help="with --exposure: this fraction of the frame interval instead of the recording's own, "
                          "as a user's guess would be (results/concealed..._exposure<F>/)")
@@ -699,11 +706,14 @@ if __name__ == "__main__":
                             or args.crf is not None or args.albedo_passes is not None or args.exposure):
         if args.albedo_passes is not None or args.exposure:
             suffix = (f"_albedo{args.albedo_passes}" if args.albedo_passes is not None else "") + (
-                exposure_suffix(args.exposure_fraction) if args.exposure else "")
+                exposure_suffix(args.exposure_fraction) if args.exposure else "") + (
+                f"_near{args.coverage_near_px}" if args.coverage_near_px is not None else "")
             against = ("the exposure" if args.exposure_fraction is None
                        else f"an exposure of {args.exposure_fraction:g}")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
-                              + ([f"coverage against {against}"] if args.exposure else []))
+                              + ([f"coverage against {against}"] if args.exposure else [])
+                              + ([f"coverage within {args.coverage_near_px} px"]
+                                 if args.coverage_near_px is not None else []))
             text = side_by_side(suffix, label, column="segmentation")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
@@ -734,6 +744,9 @@ if __name__ == "__main__":
         sys.exit(print(board))
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
+    if args.coverage_near_px is not None and not (args.exposure and args.coverage_near_px >= 1):
+        ap.error(f"--coverage-near-px needs --exposure (only the exposure reads the coverage) and a band of at "
+                 f"least 1 px, got {args.coverage_near_px}")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
         ap.error(f"--exposure-fraction needs --exposure and a fraction in [0, 1], got {args.exposure_fraction}")
     if args.chroma_weight is not None and (args.true_masks or args.shipped or not args.chroma_weight > 0):
@@ -751,4 +764,4 @@ if __name__ == "__main__":
                  "--shipped or --true-masks); --read-as only with --transfer")
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
-         args.read_as, args.exposure, args.exposure_fraction)
+         args.read_as, args.exposure, args.exposure_fraction, args.coverage_near_px)
