@@ -108,8 +108,10 @@ class SegmentationSettings:
         coverage_near_px: the soft coverage's moments (``Observation.coverage_moments``) count
             the pixels within this many 4-neighbour steps of the final mask. A blurred edge's ramp
             reaches past 4 at these recordings' speeds, so 4 reads short of the true blur; a wider
-            band keeps more background noise, which the clip to [0, 1] turns into mass
-            (experiments/discover/HISTORY.md, *Reading the exposure from the blur*).
+            band keeps more background noise, which the clip to [0, 1] turns into mass. A band
+            of 6 reads the blur nearly right but let discover name a wrong clock on a concealed
+            ball, so 4 stays (experiments/discover/HISTORY.md, *Reading the exposure from the
+            blur*).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
