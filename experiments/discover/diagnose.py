@@ -492,6 +492,26 @@ def _whole(masks: np.ndarray) -> np.ndarray:
                      for m in masks])
 
 
+def _exact_moments(truth: dict, shape, camera) -> tuple[tuple, torch.Tensor]:
+    """The true silhouette's exact moments: at each frame's time ((area, centroid, covariance),
+    :func:`torchfit.render.silhouette_moments`) and the (T, 6) raw moments averaged over the
+    recording's blur sub-frames (:func:`_subframe_poses`). Pinhole only."""
+    from torchfit.render import RenderMesh, silhouette_moments
+
+    if any(abs(c) > 0 for c in camera.dist_coeffs):
+        raise SystemExit("a lens recording: the exact moments here take no distortion")
+    per_frame = truth["per_frame"]
+    sub_position, sub_rotation = _subframe_poses(truth)
+    frames, subframes = sub_position.shape[:2]
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    with torch.no_grad():
+        mid = silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
+                                 torch.as_tensor(np.array(per_frame["position"])))
+        subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
+                                  torch.as_tensor(sub_position.reshape(-1, 3)))
+    return mid, _raw(subs).reshape(frames, subframes, 6).mean(1)
+
+
 def blur(folder: Path, near_px: str = "4", settings=None) -> dict:
     """Is the soft coverage a better observation once the model blurs too? The five channels of
     the segmented mask and of its soft coverage (the per-pixel estimate before smoothing and
@@ -505,22 +525,11 @@ def blur(folder: Path, near_px: str = "4", settings=None) -> dict:
     from scipy import ndimage
 
     from torchfit.losses import central_moments, mask_moments
-    from torchfit.render import RenderMesh, silhouette_moments
     from torchfit.residuals import channel_values
 
     truth, shape, camera = recording_parts(folder)
-    if any(abs(c) > 0 for c in camera.dist_coeffs):
-        raise SystemExit(f"{folder.name}: a lens recording; the exact moments here take no distortion")
-    per_frame = truth["per_frame"]
-    sub_position, sub_rotation = _subframe_poses(truth)
-    frames, subframes = sub_position.shape[:2]
-    mesh = RenderMesh.from_shape(shape, torch.float64)
-    with torch.no_grad():
-        mid = silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
-                                 torch.as_tensor(np.array(per_frame["position"])))
-        subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
-                                  torch.as_tensor(sub_position.reshape(-1, 3)))
-        averaged = central_moments(_raw(subs).reshape(frames, subframes, 6).mean(1))
+    mid, averaged = _exact_moments(truth, shape, camera)
+    averaged = central_moments(averaged)
     masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
     whole = _whole(masks)
     near = np.stack([ndimage.binary_dilation(m, iterations=int(near_px)) for m in masks])
@@ -796,37 +805,27 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     ramp's width (:func:`_ramp_width`), fitted over ``e`` (0.01 steps) and a Gaussian's ``sigma``."""
     from scipy import ndimage
 
-    from torchfit.render import RenderMesh, silhouette_moments
     from torchfit.video import raw_moments
 
     truth, shape, camera = recording_parts(folder)
     own = recording_exposure(truth)
-    per_frame = truth["per_frame"]
-    sub_position, sub_rotation = _subframe_poses(truth)
-    frames, subframes = sub_position.shape[:2]
-    mesh = RenderMesh.from_shape(shape, torch.float64)
-    with torch.no_grad():
-        mid = _raw(silhouette_moments(mesh, camera, torch.as_tensor(np.array(per_frame["R"])),
-                                      torch.as_tensor(np.array(per_frame["position"])))).numpy()
-        averaged = _raw(silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
-                                           torch.as_tensor(sub_position.reshape(-1, 3)))).numpy()
-    averaged = averaged.reshape(frames, subframes, 6).mean(1)
+    mid, averaged = _exact_moments(truth, shape, camera)
+    mid, averaged = _raw(mid).numpy(), averaged.numpy()
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
-    band = (settings or SegmentationSettings()).coverage_near_px
-    covers = [np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=band)
-              for c, m in zip(kept, masks)]
+
+    def coverage_within(band: int) -> np.ndarray:  # (T, 6) raw moments, as the segmentation keeps them
+        return raw_moments(np.stack([np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=band)
+                                     for c, m in zip(kept, masks)]))
+
+    cover, mask = coverage_within((settings or SegmentationSettings()).coverage_near_px), raw_moments(masks)
     used = _whole(masks)
     used[[0, -1]] = False
     velocity = np.gradient(mid[:, 1:3] / mid[:, :1], axis=0)
     w = own.end_weight
-    pairs = {"exact average / exact": (averaged, mid), "coverage / exact": (raw_moments(np.stack(covers)), mid),
-             "coverage / mask": (raw_moments(np.stack(covers)), raw_moments(masks)),
-             "exact average / mask": (averaged, raw_moments(masks))}
+    pairs = {"exact average / exact": (averaged, mid), "coverage / exact": (cover, mid),
+             "coverage / mask": (cover, mask), "exact average / mask": (averaged, mask)}
+    pairs |= {f"coverage within {near} px / exact": (coverage_within(near), mid) for near in NEAR_PX}
     moments = {k: _along_motion_fraction(a, b, velocity, used, w) for k, (a, b) in pairs.items()}
-    for near in NEAR_PX:  # the coverage counted within other distances of the mask
-        wider = raw_moments(np.stack([np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=near)
-                                      for c, m in zip(kept, masks)]))
-        moments[f"coverage within {near} px / exact"] = _along_motion_fraction(wider, mid, velocity, used, w)
 
     centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
     mask_velocity = np.gradient(centre, axis=0)
@@ -836,7 +835,6 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
         gy, gx = np.gradient(c)
         g = np.hypot(gx, gy)
         edge = (c > 0.02) & (c < 0.98) & (g > 0)
-        speed = np.linalg.norm(mask_velocity[t])
         x.append(np.abs(gx[edge] * mask_velocity[t, 0] + gy[edge] * mask_velocity[t, 1]) / g[edge])
         ramp.append((c * (1 - c))[edge])
         grad.append(g[edge])
@@ -917,7 +915,7 @@ def main(argv: list[str]) -> None:
     fractions = [a for a in argv[2:] if a.startswith("fractions=")] if command == "exposure" else []
     argv = [a for a in argv if a not in fractions]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
-                                  "blur-estimate")
+                          "blur-estimate")
     # the segmentation settings of blur, search and exposure, SETTING=V after the names (e.g. albedo_passes=1)
     changes = _setting_args(argv[2:]) if command in ("blur", "search", "exposure") else {}
     if command == "search" and not changes:
