@@ -101,6 +101,15 @@ def exposure_suffix(fraction: float | None) -> str:
     return "_exposure" + ("" if fraction is None else f"{fraction:g}")
 
 
+def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_fraction: float | None,
+                        coverage_near_px: int | None) -> str:
+    """The results folder's suffix of the albedo pass, the exposure and the coverage band (empty
+    for each left at its default)."""
+    return ((f"_albedo{albedo_passes}" if albedo_passes is not None else "")
+            + (exposure_suffix(exposure_fraction) if exposure else "")
+            + (f"_near{coverage_near_px}" if coverage_near_px is not None else ""))
+
+
 def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
     """A body-frame vector fitted in a frame that may differ from the truth's by one of the shape's
     symmetries (a T-handle turned 180 degrees about its stem looks the same): the image closest
@@ -617,9 +626,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
-                            + (f"_albedo{albedo_passes}" if albedo_passes is not None else "")
-                            + (exposure_suffix(exposure_fraction) if exposure else "")
-                            + (f"_near{coverage_near_px}" if coverage_near_px is not None else "")
+                            + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px)
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
@@ -705,9 +712,8 @@ if __name__ == "__main__":
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
                             or args.crf is not None or args.albedo_passes is not None or args.exposure):
         if args.albedo_passes is not None or args.exposure:
-            suffix = (f"_albedo{args.albedo_passes}" if args.albedo_passes is not None else "") + (
-                exposure_suffix(args.exposure_fraction) if args.exposure else "") + (
-                f"_near{args.coverage_near_px}" if args.coverage_near_px is not None else "")
+            suffix = segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction,
+                                         args.coverage_near_px)
             against = ("the exposure" if args.exposure_fraction is None
                        else f"an exposure of {args.exposure_fraction:g}")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
