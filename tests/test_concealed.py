@@ -501,6 +501,8 @@ def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
     assert (guess.fraction, guess.taps) == (0.25, 5)
     assert conc.recording_exposure({"render": {"blur_subframes": 1, "exposure_frac": 0.5}}).fraction == 0.0
     assert (conc.exposure_suffix(None), conc.exposure_suffix(0.25)) == ("_exposure", "_exposure0.25")
+    assert conc.segmentation_suffix(1, True, None, 8, False) == "_albedo1_exposure_near8_unclipped"
+    assert conc.segmentation_suffix(1, True, None, None, None) == "_albedo1_exposure"
 
 
 def test_blur_estimates_recover_a_known_exposure():

@@ -22,8 +22,8 @@ the static scene:
       too dark or too close to ``A`` in colour for step a, the shading comes from neighbours.
    The mask is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half
    covered exactly at its position at that time. Closed, largest component, holes filled.
-   The coverage itself, clipped to [0, 1] within ``SegmentationSettings.coverage_near_px`` of
-   the mask, is kept as its raw moments (``Observation.coverage_moments``): moments are linear
+   The coverage itself, within ``SegmentationSettings.coverage_near_px`` of the mask (clipped to
+   [0, 1] unless ``SegmentationSettings.coverage_clip`` is off), is kept as its raw moments (``Observation.coverage_moments``): moments are linear
    in coverage, so a blurred frame's are the exposure's average of the silhouette's (what
    ``discover`` compares with an exposure, :class:`torchfit.search.Exposure`).
 
@@ -112,6 +112,11 @@ class SegmentationSettings:
             of 6 reads the blur nearly right but let discover name a wrong clock on a concealed
             ball, so 4 stays (experiments/discover/HISTORY.md, *Reading the exposure from the
             blur*).
+        coverage_clip: clip the coverage to [0, 1] before its moments are taken (the default,
+            as before). The coverage's noise is zero-mean about the truth, so the clip turns the
+            noise of every background pixel in the band into mass (0.4 sigma a pixel), and the
+            moments grow with the band; unclipped they do not (experiments/discover/HISTORY.md,
+            *The clip that made mass*).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
@@ -130,6 +135,7 @@ class SegmentationSettings:
     transfer: str = "auto"
     albedo_passes: int = 0
     coverage_near_px: int = 4
+    coverage_clip: bool = True
     morph_radius: int = 1
     min_area: int = 6
     second_component_frac: float = 0.5
@@ -815,7 +821,8 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
         if masks[t].any():
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
             near = ndimage.binary_dilation(masks[t], iterations=settings.coverage_near_px)
-            cover_moments[t] = raw_moments((np.clip(covers[t], 0.0, 1.0) * near)[None])[0]
+            cover = np.clip(covers[t], 0.0, 1.0) if settings.coverage_clip else covers[t]
+            cover_moments[t] = raw_moments((cover * near)[None])[0]
     return {"masks": masks, "background": background_bgr, "second_frac": second_frac,
             "coverage_moments": cover_moments}
 
