@@ -112,11 +112,12 @@ class SegmentationSettings:
             of 6 reads the blur nearly right but let discover name a wrong clock on a concealed
             ball, so 4 stays (experiments/discover/HISTORY.md, *Reading the exposure from the
             blur*).
-        coverage_clip: clip the coverage to [0, 1] before its moments are taken (the default,
-            as before). The coverage's noise is zero-mean about the truth, so the clip turns the
-            noise of every background pixel in the band into mass (0.4 sigma a pixel), and the
-            moments grow with the band; unclipped they do not (experiments/discover/HISTORY.md,
-            *The clip that made mass*).
+        coverage_clip: clip the coverage to [0, 1] before its moments are taken. The clip turns
+            the zero-mean noise of every background pixel in the band into mass, so the moments
+            grow with the band; unclipped they stop growing once the band holds the blurred
+            ramp. Unclipped within a band of 8, discover still named the same wrong clock on a
+            concealed ball as a clipped band of 6, so the clip stays on
+            (experiments/discover/HISTORY.md, *The clip that made mass*).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least

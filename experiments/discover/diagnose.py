@@ -14,6 +14,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py lens-masks DIR NAME...     # true masks against the mesh projected through the lens, ~5 s each
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME... [SETTING=V...]  # coverage moments against the exposure's average, ~30 s each
+    python experiments/discover/diagnose.py blur-estimate SET NAME... [SETTING=V...]  # the exposure read from the blur alone, ~25 s each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
     python experiments/discover/diagnose.py clip SET NAME...           # what blur does to a ball's 0.5 contour, by geometry alone, ~1 s each
@@ -796,7 +797,9 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     ``coverage_near_px`` of the mask) over the exact frame-time moments, the coverage over the
     segmented mask (an estimate from the video alone), and the exact average over the mask; then
     the coverage counted within each of ``NEAR_PX`` (4-neighbour steps) of the mask over the exact
-    frame-time moments.
+    frame-time moments, and the coverage without its clip to [0, 1] within 4 and each of
+    ``NEAR_PX``. ``area``: each coverage's m00 over the exact average's, its mean, sd and drift
+    (the slope of a line over the frames, end minus start) over the frames.
 
     ``ramp``: the coverage's edge ramp (video alone). Per pixel of the coverage between 0.02
     and 0.98 the edge's normal ``n`` is its gradient's; a ramp ``L`` long along the motion is
@@ -813,8 +816,8 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     mid, averaged = _raw(mid).numpy(), averaged.numpy()
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
 
-    def coverage_within(band: int) -> np.ndarray:  # (T, 6) raw moments, as the segmentation keeps them
-        return raw_moments(np.stack([np.clip(c, 0.0, 1.0) * ndimage.binary_dilation(m, iterations=band)
+    def coverage_within(band: int, clip: bool = True) -> np.ndarray:  # (T, 6) raw moments, as the segmentation keeps them
+        return raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * ndimage.binary_dilation(m, iterations=band)
                                      for c, m in zip(kept, masks)]))
 
     cover, mask = coverage_within((settings or SegmentationSettings()).coverage_near_px), raw_moments(masks)
@@ -825,7 +828,15 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     pairs = {"exact average / exact": (averaged, mid), "coverage / exact": (cover, mid),
              "coverage / mask": (cover, mask), "exact average / mask": (averaged, mask)}
     pairs |= {f"coverage within {near} px / exact": (coverage_within(near), mid) for near in NEAR_PX}
+    pairs |= {f"unclipped coverage within {near} px / exact": (coverage_within(near, False), mid)
+              for near in (4, *NEAR_PX)}
     moments = {k: _along_motion_fraction(a, b, velocity, used, w) for k, (a, b) in pairs.items()}
+    area = {}  # the coverage's m00 over the exact average's: mean, sd and drift (end minus start of a line) over frames
+    for k, (a, _) in pairs.items():
+        if k.startswith(("coverage", "unclipped")) and k.endswith(" / exact"):
+            ratio, frame = a[used, 0] / averaged[used, 0], np.flatnonzero(used)
+            drift = np.polyfit((frame - frame.min()) / max(frame.max() - frame.min(), 1), ratio, 1)[0]
+            area[k.removesuffix(" / exact")] = [float(ratio.mean()), float(ratio.std()), float(drift)]
 
     centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
     mask_velocity = np.gradient(centre, axis=0)
@@ -847,7 +858,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     fits = [(float(np.sqrt(np.mean((np.interp(e * travel, lengths, table) - width) ** 2))), float(e), sigma)
             for e in np.linspace(0.0, 1.0, 101) for sigma, table in tables.items()]
     rms, fraction, sigma = min(fits)
-    return {"true_exposure": own.fraction, "frames": int(used.sum()), "moments": moments,
+    return {"true_exposure": own.fraction, "frames": int(used.sum()), "moments": moments, "area": area,
             "ramp": {"fraction": fraction, "sigma_px": sigma, "rms_px": rms,
                      "travel_px": travel.tolist(), "width_px": width.tolist()}}
 
@@ -916,8 +927,8 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate")
-    # the segmentation settings of blur, search and exposure, SETTING=V after the names (e.g. albedo_passes=1)
-    changes = _setting_args(argv[2:]) if command in ("blur", "search", "exposure") else {}
+    # the segmentation settings of blur, search, exposure and blur-estimate, SETTING=V after the names (e.g. albedo_passes=1)
+    changes = _setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate") else {}
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
