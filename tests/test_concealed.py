@@ -536,3 +536,24 @@ def test_blur_estimates_recover_a_known_exposure():
     used = np.ones(frames, bool)
     assert diag._along_motion_fraction(raw(blurred), raw(sharp), velocity, used, w) == pytest.approx(fraction, rel=1e-6)
     assert diag._along_motion_fraction(raw(sharp), raw(sharp), velocity, used, w) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_mixed_moments_take_each_part_from_its_source():
+    """``diagnose.py exact-coverage``'s mix: each of area, centroid and shape (second moments per
+    unit area) comes from the source named, and an empty frame stays empty."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    from torchfit.losses import central_moments
+
+    def raw(area, cu, cv, a, b, c):
+        return [area, area * cu, area * cv, area * (a + cu * cu), area * (b + cu * cv), area * (c + cv * cv)]
+
+    seen = np.array([raw(100.0, 10.0, 20.0, 9.0, 1.0, 8.0), raw(120.0, 11.0, 21.0, 9.5, 0.5, 8.5), [0.0] * 6])
+    exact = np.array([raw(104.0, 10.5, 19.0, 10.0, 2.0, 7.0), raw(118.0, 11.2, 20.5, 9.0, 0.0, 9.0),
+                      raw(90.0, 12.0, 22.0, 8.0, 0.0, 8.0)])
+    assert np.allclose(diag.mixed_moments(seen, exact, ()), seen)
+    assert np.allclose(diag.mixed_moments(seen, exact, diag.COVERAGE_PARTS)[:2], exact[:2])
+    mixed = central_moments(torch.as_tensor(diag.mixed_moments(seen, exact, ("centroid",))[:2]))
+    own, true = central_moments(torch.as_tensor(seen[:2])), central_moments(torch.as_tensor(exact[:2]))
+    assert torch.allclose(mixed[0], own[0]) and torch.allclose(mixed[1], true[1]) and torch.allclose(mixed[2], own[2])
+    assert np.all(diag.mixed_moments(seen, exact, ("area",))[2] == 0)

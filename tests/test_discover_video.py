@@ -615,9 +615,9 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
     flights = []
     render = video._fitted_moments
 
-    def counted(cands, effects_):
+    def counted(cands, effects_, fraction=None):
         flights.append(len(cands))
-        return render(cands, effects_)
+        return render(cands, effects_, fraction)
 
     video._fitted_moments = counted
     together = video._lm_many(starts, used, 3)

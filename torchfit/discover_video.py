@@ -184,6 +184,9 @@ def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 # a missing effect pulls it (a wrong clock: time_box -1.25 px), see experiments/discover/HISTORY.md.
 EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
+# Step unit of a fitted exposure's fraction (VideoProblem(fit_exposure=True)); it has no prior.
+EXPOSURE_SCALE = 0.05
+NUISANCE_SCALES = (EDGE_SCALE, EDGE_SCALE, EXPOSURE_SCALE)  # the model's edge tuple, term by term
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 # The nuisance's second term: the bias is b0 + b1 e cos(2 phi), phi the angle between the outline
 # normal and the silhouette's major axis, e its elongation (see normal_axis_angle). b1 < 0: the
@@ -313,10 +316,12 @@ def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarra
 
 @dataclass
 class _Model:
-    """A fitted model: the candidate (B = 1), its effects' parameter values and the segmentation
-    edge bias ``(b0, b1)``: pixels the observed outline lies outside the true one, ``b0 + b1 e cos(2
-    phi)`` with ``phi`` the outline normal's angle to the major axis and ``e`` the silhouette's
-    elongation (a nuisance, :func:`normal_axis_angle`)."""
+    """A fitted model: the candidate (B = 1), its effects' parameter values and the nuisances
+    every model fits, ``edge``: the segmentation edge bias ``(b0, b1)``, pixels the observed
+    outline lies outside the true one, ``b0 + b1 e cos(2 phi)`` with ``phi`` the outline normal's
+    angle to the major axis and ``e`` the silhouette's elongation (:func:`normal_axis_angle`);
+    then, where the exposure is fitted (``VideoProblem(fit_exposure=True)``), its fraction of
+    the frame interval."""
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
@@ -369,6 +374,11 @@ class VideoProblem:
             exposure's average moments, while its 0.5 contour, the mask, is neither that nor the
             frame's instant. None: the masks against the frame's instant.
         coverage: see ``exposure``.
+        fit_exposure: fit the exposure's fraction as a nuisance of every model (one more
+            parameter, no prior), starting at ``exposure.fraction``: the coverage's blur is a
+            speed sensor, and one read longer or shorter than the model's exposure would
+            otherwise be taken up by a wrong clock (experiments/discover/HISTORY.md, *What a
+            clock is on a ball*).
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -382,7 +392,7 @@ class VideoProblem:
 
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
-                 exposure: Exposure | None = None, coverage: Tensor | None = None,
+                 exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
@@ -392,8 +402,11 @@ class VideoProblem:
         if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
             raise ValueError(f"an exposure needs the ({len(problem.times)}, 6) raw moments of the frames' soft "
                              f"coverage, got {None if coverage is None else tuple(coverage.shape)}")
+        if fit_exposure and exposure is None:
+            raise ValueError("fit_exposure needs an exposure to start from (and the frames' soft coverage)")
         self.search_problem = problem
         self.exposure = exposure
+        self.fit_exposure = fit_exposure
         # refits run in float64: finite differences of a converged fit need more than float32 resolves
         problem = _as_float64(problem)
         self.problem = problem
@@ -434,21 +447,38 @@ class VideoProblem:
             out.append(effect.to(dtype=dtype, device=device))
         return out
 
+    def start_nuisances(self) -> tuple[float, ...]:
+        """A baseline's nuisances before its fit (:class:`_Model`'s ``edge``): no edge bias, and the
+        given exposure's fraction where the exposure is fitted."""
+        return (0.0, 0.0) + ((self.exposure.fraction,) if self.fit_exposure else ())
+
     def residuals(self, model: _Model) -> dict:
         """Channel name -> (T,) residual (observed minus fitted), NaN outside the used frames."""
         with torch.no_grad():
             channels = self._channels(model.cands, self.effects(model.values), model.edge)
         return {k: v[0].cpu().numpy() for k, v in channels.items()}
 
-    def _fitted_moments(self, cands: Candidates, effects: Sequence[Effect]) -> tuple[Tensor, Tensor, Tensor]:
+    def _fitted_moments(self, cands: Candidates, effects: Sequence[Effect],
+                        fraction: float | Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Area (B, T), centroid (B, T, 2) and covariance (B, T, 2, 2) of B candidates' silhouettes
-        in every frame (image pixels), exact (:func:`torchfit.search.candidate_moments`)."""
-        return candidate_moments(self.problem, cands, len(self.problem.times), effects, exposure=self.exposure)
+        in every frame (image pixels), exact (:func:`torchfit.search.candidate_moments`);
+        ``fraction``: a fitted exposure's fraction, shared or (B,) one per candidate (None: the
+        given exposure's)."""
+        fractions = None
+        if fraction is not None:
+            fractions = torch.as_tensor(fraction, dtype=torch.float64).reshape(-1).expand(len(cands))
+        return candidate_moments(self.problem, cands, len(self.problem.times), effects, exposure=self.exposure,
+                                 fractions=fractions)
 
-    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float]) -> dict:
+    @staticmethod
+    def _fraction(edge: tuple[float, ...]) -> float | None:
+        """The fitted exposure's fraction in a model's nuisances, None where it is not fitted."""
+        return edge[2] if len(edge) > 2 else None
+
+    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, ...]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
         observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
-        return self._channels_of(self._fitted_moments(cands, effects), edge)
+        return self._channels_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge)
 
     def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, float]) -> dict:
         """:meth:`_channels` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
@@ -489,7 +519,7 @@ class VideoProblem:
         """(B, N + 2) whitened residuals of the frames in ``mask`` (channel-major, see
         :meth:`_whitened`), then the edge bias's prior terms ``(b0 / EDGE_PRIOR_PX, b1 /
         EDGE_SHAPE_PRIOR_PX)``."""
-        return self._vector_of(self._fitted_moments(cands, effects), edge, mask)
+        return self._vector_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge, mask)
 
     def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, float], mask: Tensor) -> Tensor:
         """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
@@ -503,8 +533,9 @@ class VideoProblem:
                extra: Tensor) -> tuple[Candidates, list[Effect], tuple[float, float]]:
         """Candidates (B = len(state)), effects and edge bias at ``model`` moved by scaled steps.
 
-        ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + 2,) the effect parameters in
-        units of ``EFFECT_SCALES``, then the edge bias's two terms in units of ``EDGE_SCALE``.
+        ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + K,) the effect parameters in
+        units of ``EFFECT_SCALES``, then the model's K nuisances in units of ``NUISANCE_SCALES``
+        (the edge bias's two terms, and a fitted exposure's fraction, which must stay in [0, 1]).
         """
         fields, offset = {}, 0
         for name, scale in SCALES.items():
@@ -520,12 +551,17 @@ class VideoProblem:
                 step = extra[offset:offset + value.numel()].view_as(value) * EFFECT_SCALES.get(pname, 0.1)
                 values[name][pname] = value + step.cpu()
                 offset += value.numel()
-        edge = tuple(b + EDGE_SCALE * float(step) for b, step in zip(model.edge, extra[offset:offset + 2]))
+        edge = tuple(b + scale * float(step) for b, step, scale
+                     in zip(model.edge, extra[offset:offset + len(model.edge)], NUISANCE_SCALES))
+        fraction = self._fraction(edge)
+        if fraction is not None and not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"an exposure must be a fraction of the frame interval in [0, 1], got {fraction}")
         return cands, self.effects(values), edge
 
     def _extra_count(self, model: _Model) -> int:
-        """Free parameters besides the 14 of the state: the effects' and the edge bias's two."""
-        return 2 + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
+        """Free parameters besides the 14 of the state: the effects' and the nuisances' (the edge
+        bias's two, and a fitted exposure's fraction)."""
+        return len(model.edge) + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
 
     def _free_count(self, model: _Model) -> int:
         """Free parameters the criterion charges: the 14 of the state and the extras, less those of
@@ -568,28 +604,43 @@ class VideoProblem:
     def _jacobians(self, models: Sequence[_Model], mask: Tensor,
                    step: float = 1e-3) -> list[tuple[Tensor, Tensor]]:
         """:meth:`_jacobian` of several models whose batched rows share one flight and render."""
-        plans = []
+        plans, blocks = [], []
         for model in models:
             free = torch.nonzero(~self._frozen(model)[:14]).flatten()
-            n_extra = self._extra_count(model)  # the effects' parameters, then the edge bias's two
+            n_extra = self._extra_count(model)  # the effects' parameters, then the nuisances
             values = self._stepped_values(model, 1 + len(free), step)
-            state = torch.zeros(1 + len(free) + n_extra - 2, 14, dtype=torch.float64)
+            state = torch.zeros(1 + len(free) + n_extra - len(model.edge), 14, dtype=torch.float64)
             state[1 + torch.arange(len(free)), free] = step
             zero_extra = torch.zeros(n_extra, dtype=torch.float64)
             cands, _, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            plans.append(((cands, values, edge), free))
+            blocks.append((cands, values, edge))
+            exposure_step = None
+            if self._fraction(model.edge) is not None:  # a fitted exposure's column renders once more
+                exposure_step = step if self._fraction(model.edge) + step * EXPOSURE_SCALE <= 1.0 else -step
+                shifted = zero_extra.clone()
+                shifted[-1] = exposure_step
+                one, _, moved = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
+                blocks.append((one, model.values, moved))
+            plans.append((free, exposure_step))
         with torch.no_grad():
-            evaluated = self._evaluate([plan[0] for plan in plans], mask)
-            return [self._assemble_jacobian(model, fitted, rows, free, mask, step)
-                    for model, (_, free), (fitted, rows) in zip(models, plans, evaluated)]
+            evaluated = iter(self._evaluate(blocks, mask))
+            out = []
+            for model, (free, exposure_step) in zip(models, plans):
+                fitted, rows = next(evaluated)
+                exposure_row = None if exposure_step is None else (next(evaluated)[1][0], exposure_step)
+                out.append(self._assemble_jacobian(model, fitted, rows, free, mask, step, exposure_row))
+            return out
 
     def _assemble_jacobian(self, model: _Model, fitted: tuple[Tensor, Tensor, Tensor], rows: Tensor, free: Tensor,
-                           mask: Tensor, step: float) -> tuple[Tensor, Tensor]:
+                           mask: Tensor, step: float,
+                           exposure_row: tuple[Tensor, float] | None = None) -> tuple[Tensor, Tensor]:
         """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N: unmoved, the F
         free state columns' steps, the E effect parameters' steps) and their fitted moments; the
-        edge bias's two columns are computed here from the unmoved render."""
+        edge bias's two columns are computed here from the unmoved render. ``exposure_row``: a
+        fitted exposure's (N,) row rendered with its fraction moved by the step given (scaled
+        units; backward where forward would leave [0, 1])."""
         n_extra = self._extra_count(model)
-        n_effect = n_extra - 2  # the extras are the effects' parameters, then the edge bias's two
+        n_effect = n_extra - len(model.edge)  # the extras are the effects' parameters, then the nuisances
         zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
         base = rows[0]
         jac = base.new_zeros(len(base), 14 + n_extra)
@@ -601,6 +652,8 @@ class VideoProblem:
             shifted[n_effect + k] = step
             _, _, edge = self._build(model, zero_state, shifted)
             jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, edge, mask)[0] - base) / step
+        if exposure_row is not None:
+            jac[:, 14 + n_effect + 2] = (exposure_row[0] - base) / exposure_row[1]
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, float]]],
@@ -610,7 +663,7 @@ class VideoProblem:
         Args:
             blocks: per model, its B_k rows' candidates, effect values ``{name: {param: value}}``
                 (each shared, of its null value's shape, or one per row, (B_k,) or (B_k, 3)) and
-                edge bias.
+                nuisances (:class:`_Model`'s ``edge``).
 
         Returns:
             Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + 2)
@@ -621,7 +674,11 @@ class VideoProblem:
         else:
             cands = Candidates(*(torch.cat([getattr(block[0], f) for block in blocks]) for f in blocks[0][0].fields()))
             values = _stacked_values([(block[1], len(block[0])) for block in blocks])
-        fitted = self._fitted_moments(cands, self.effects(values))
+        fraction = None
+        if self._fraction(blocks[0][2]) is not None:  # a fitted exposure: one fraction per row
+            fraction = torch.cat([torch.full((len(block[0]),), self._fraction(block[2]), dtype=torch.float64)
+                                  for block in blocks])
+        fitted = self._fitted_moments(cands, self.effects(values), fraction)
         out, start = [], 0
         for block_cands, _, edge in blocks:
             part = tuple(m[start:start + len(block_cands)] for m in fitted)
@@ -724,7 +781,8 @@ class VideoProblem:
 
     def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float], dict]:
         """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
-        :func:`torchfit.discover.alone_std` the second), of the edge bias's two terms (pixels), and
+        :func:`torchfit.discover.alone_std` the second), of the nuisances (the edge bias's two
+        terms in pixels, and a fitted exposure's fraction), and
         each effect's Wald statistic against its null values
         (:func:`torchfit.discover.wald_statistic`): Gauss-Newton at the optimum, inflated by the
         reduced chi-squared when it exceeds 1."""
@@ -752,7 +810,8 @@ class VideoProblem:
                 part, solo = std[at:at + count].cpu() * scale, alone[at - start:at - start + count] * scale
                 out.setdefault(name, {})[pname] = tuple(x.tolist() if count > 1 else float(x[0]) for x in (part, solo))
                 at += count
-        return out, (float(std[offset]) * EDGE_SCALE, float(std[offset + 1]) * EDGE_SCALE), wald
+        nuisances = tuple(float(std[offset + k]) * scale for k, scale in zip(range(len(model.edge)), NUISANCE_SCALES))
+        return out, nuisances, wald
 
     def _describe(self, model: _Model, std: dict) -> dict:
         params = {}
@@ -789,6 +848,8 @@ class VideoProblem:
                                  "edge_px": {"value": model.edge[0], "std": std[1][0],
                                              "ends_minus_sides": 2 * model.edge[1],
                                              "ends_minus_sides_std": 2 * std[1][1], "form": EDGE_FORM},
+                                 "exposure": (None if self._fraction(model.edge) is None
+                                              else {"value": self._fraction(model.edge), "std": std[1][2]}),
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -839,7 +900,7 @@ class VideoProblem:
             result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
             best = result.candidates.select(torch.zeros(1, dtype=torch.long))
             start = _Model(Candidates(*(getattr(best, f).double().to(self.problem.masks.device)
-                                        for f in best.fields())), {})
+                                        for f in best.fields())), {}, self.start_nuisances())
             self._set_noise(start)
             model, resid, jac = self._lm(start, everything, self.iterations)
             held_model, _, _ = self._lm(model, self.train, self.iterations)
@@ -872,7 +933,7 @@ class VideoProblem:
         does that. Outliers are left out of every model's criterion and listed in the report.
         """
         with torch.no_grad():
-            fitted = self._fitted_moments(model.cands, self.effects(model.values))
+            fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.edge))
             masks = self.problem.masks.cpu().numpy() > 0.5
             self.edge_table = _edge_moments(masks, fitted[2][0].cpu()).to(self.problem.masks.device)
             if self.coverage_shift is not None:
@@ -997,7 +1058,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
-                   progress: Callable[[str], None] | None = None) -> dict:
+                   fit_exposure: bool = False, progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1015,6 +1076,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         exposure: the camera's exposure; with one, the observation is the frames' soft coverage
             (``observation.coverage_moments``) and every model's silhouette is averaged over it
             (see :class:`VideoProblem`).
+        fit_exposure: fit the exposure's fraction as a nuisance of every model, from
+            ``exposure.fraction`` (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1028,7 +1091,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                              "does not keep (its masks are undistorted): leave the exposure out")
         coverage = torch.as_tensor(observation.coverage_moments[span])
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
-                         iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage, progress=say)
+                         iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
+                         fit_exposure=fit_exposure, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1056,6 +1120,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise": video.noise,
         "noise_edge_px": edge_px,
         "exposure": None if exposure is None else asdict(exposure),
+        "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
@@ -1121,7 +1186,7 @@ def _unexplained(video: VideoProblem, final: ModelFit, located_after: dict, time
     if "shape" in flagged:
         model = final.payload["model"]
         with torch.no_grad():
-            fitted = video._fitted_moments(model.cands, video.effects(model.values))
+            fitted = video._fitted_moments(model.cands, video.effects(model.values), video._fraction(model.edge))
             observed = _moments_at(video.edge_table, model.edge)
         stretch = motion_stretch(observed[2].cpu().numpy(), fitted[1][0].cpu().numpy(),
                                  fitted[2][0].cpu().numpy(), times, used)
@@ -1241,6 +1306,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     lines.append(f"Segmentation edge bias (a nuisance every model fits): {edge['value']:+.2f} ± {edge['std']:.2f} px "
                  f"(observed outline outside the true one when positive), ends minus sides "
                  f"{edge['ends_minus_sides']:+.2f} ± {edge['ends_minus_sides_std']:.2f} px.")
+    fitted = final.payload.get("exposure")
+    if fitted is not None:
+        lines.append(f"Exposure (a nuisance every model fits): {fitted['value']:.3f} ± {fitted['std']:.3f} of the frame "
+                     f"interval, as the soft coverage's blur reads it (from {video.exposure.fraction:g}).")
     frames = np.flatnonzero(video.problem.used.cpu().numpy())
 
     def spread(score: dict) -> str:

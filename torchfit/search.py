@@ -534,16 +534,19 @@ def exposure_poses(rot: Tensor, position: Tensor, motion: Tensor, com: Tensor, g
 
 def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects: Sequence[Effect] = (),
                       rotation_step: float | None = None,
-                      exposure: Exposure | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                      exposure: Exposure | None = None,
+                      fractions: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Exact area (B, frames), centroid (B, frames, 2) and covariance (B, frames, 2, 2) of the
     candidates' hard silhouettes, image pixels (:func:`torchfit.render.silhouette_moments`).
 
     ``rotation_step``: see :func:`candidate_poses`. ``exposure``: average the silhouette over
     the exposure (:class:`Exposure`; None or a zero fraction: the frame's instant).
+    ``fractions``: (B,) one exposure fraction per candidate in place of ``exposure.fraction``
+    (a fitted exposure; the exposure's taps still give the rule's weights).
     """
     rot, position, motion = candidate_poses(problem, cands, frames, effects, rotation_step)
     batch = rot.shape[0]
-    if exposure is None or exposure.fraction == 0:
+    if exposure is None or (fractions is None and exposure.fraction == 0):
         moments = silhouette_moments(problem.mesh, problem.camera, rot.reshape(-1, 3, 3), position.reshape(-1, 3),
                                      *camera_effects(problem, effects, motion))
         return tuple(m.reshape(batch, frames, *m.shape[1:]) for m in moments)
@@ -551,7 +554,8 @@ def candidate_moments(problem: Problem, cands: Candidates, frames: int, effects:
     body = apply_effects(effects, problem.body, times)[0]
     rate = clock_rate(effects)
     interval = float(problem.times[1] - problem.times[0]) * (1.0 if rate is None else rate.to(rot))
-    half = torch.as_tensor(0.5 * exposure.fraction * interval, dtype=rot.dtype, device=rot.device)
+    fraction = exposure.fraction if fractions is None else fractions.to(rot)
+    half = torch.as_tensor(0.5 * fraction * interval, dtype=rot.dtype, device=rot.device)
     gravity = cands.gravity(problem.g).to(rot)
     poses = [(rot, position, motion)] + [exposure_poses(rot, position, motion, body.com, gravity, sign * half)
                                          for sign in (-1.0, 1.0)]

@@ -15,6 +15,8 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME... [SETTING=V...]  # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py blur-estimate SET NAME... [SETTING=V...]  # the exposure read from the blur alone, ~25 s each
+    python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
+    python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape]  # discover with the exposure on a coverage partly exact, ~8 min each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
     python experiments/discover/diagnose.py clip SET NAME...           # what blur does to a ball's 0.5 contour, by geometry alone, ~1 s each
@@ -37,11 +39,12 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
-from concealed import recording_exposure
+from concealed import CANDIDATES, recording_exposure
 from segmentation_error import frame_errors, mask_centroids, measure, segment_watching
 from true_masks import load_problem, problem_of, recording_parts, with_masks
 
@@ -863,6 +866,87 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
                      "travel_px": travel.tolist(), "width_px": width.tolist()}}
 
 
+AREA_BANDS = (2, 4, 6, 8, 12)  # area: the bands the coverage is counted within
+LOW_CONTRAST = 50.0  # area: grey levels of object minus background below which a frame counts as low-contrast
+
+
+def area(folder: Path, settings=None) -> dict:
+    """The soft coverage's area (m00) over the true silhouette's exact exposure average, frame by
+    frame, against the contrast between object and background there: the video's median
+    background over a ring 3-6 px outside the true mask against the frame's pixels 3 px inside
+    it (BGR distance, grey levels). Per band of ``AREA_BANDS``, clipped to [0, 1] and not: the
+    ratio's mean over the high- and the low-contrast frames (``LOW_CONTRAST``), their difference,
+    its correlation with the contrast and its sd over the used frames."""
+    from scipy import ndimage
+
+    from torchfit.video import _read_video, raw_moments
+
+    truth, shape, camera = recording_parts(folder)
+    _, averaged = _exact_moments(truth, shape, camera)
+    averaged = averaged.numpy()
+    masks, kept, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
+    used = _whole(masks)
+    used[[0, -1]] = False
+    frames, _ = _read_video(folder / "video.mp4", 0, None)
+    background = np.median(frames, 0).astype(np.float64)
+    contrast = np.full(len(frames), np.nan)
+    for t in np.flatnonzero(used):
+        ring = ndimage.binary_dilation(true[t], iterations=6) & ~ndimage.binary_dilation(true[t], iterations=2)
+        inside = ndimage.binary_erosion(true[t], iterations=3)
+        if ring.any() and inside.any():
+            contrast[t] = np.linalg.norm(frames[t][inside].mean(0) - background[ring].mean(0))
+    used &= np.isfinite(contrast)
+    low, high = used & (contrast < LOW_CONTRAST), used & (contrast >= LOW_CONTRAST)
+    rows = {}
+    for clip in (True, False):
+        for band in AREA_BANDS:
+            cover = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * ndimage.binary_dilation(m, iterations=band)
+                                          for c, m in zip(kept, masks)]))
+            ratio = cover[:, 0] / averaged[:, 0]
+            row = {"high": float(ratio[high].mean()) if high.any() else None,
+                   "low": float(ratio[low].mean()) if low.any() else None,
+                   "corr_contrast": float(np.corrcoef(contrast[used], ratio[used])[0, 1]), "sd": float(ratio[used].std())}
+            row["low_minus_high"] = row["low"] - row["high"] if low.any() and high.any() else None
+            rows[f"{'clipped' if clip else 'unclipped'} within {band} px"] = row
+    return {"frames": int(used.sum()), "low_contrast_frames": np.flatnonzero(low).tolist(),
+            "contrast": [None if not np.isfinite(c) else float(c) for c in contrast], "area": rows}
+
+
+COVERAGE_PARTS = ("area", "centroid", "shape")  # exact-coverage: the coverage's parts that can come from the truth
+
+
+def mixed_moments(seen: np.ndarray, exact: np.ndarray, parts: tuple[str, ...]) -> np.ndarray:
+    """(T, 6) raw moments with the ``parts`` (of ``COVERAGE_PARTS``) of ``exact`` and the rest of
+    ``seen`` (both (T, 6) raw moments about one origin); frames ``seen`` leaves empty stay so."""
+    from torchfit.losses import central_moments
+
+    seen_t = torch.as_tensor(seen, dtype=torch.float64)
+    empty = seen_t[:, 0] <= 0
+    unit = torch.tensor([1.0, 0.0, 0.0, 1.0, 0.0, 1.0], dtype=torch.float64)  # stands in for an empty frame
+    own = central_moments(torch.where(empty[:, None], unit, seen_t))
+    truth = central_moments(torch.as_tensor(exact, dtype=torch.float64))
+    mixed = _raw(tuple(e if name in parts else o for name, e, o in zip(COVERAGE_PARTS, truth, own))).numpy()
+    mixed[empty.numpy()] = np.asarray(seen)[empty.numpy()]
+    return mixed
+
+
+def exact_coverage(folder: Path, settings=None, parts: tuple[str, ...] = COVERAGE_PARTS) -> dict:
+    """Discover with the recording's exposure (``concealed.py --exposure``) on a coverage whose
+    ``parts`` come from the true silhouette's exact exposure average (:func:`_exact_moments`) and
+    the rest from the segmentation (``settings``): ``area`` its m00, ``centroid`` its centre,
+    ``shape`` its central second moments per unit area. The masks, and so the search and the
+    edge nuisance's table, stay the segmentation's. Which of the coverage's errors turn a verdict?"""
+    truth, shape, camera = recording_parts(folder)
+    observation, problem, span = load_problem(folder, shape, camera, False, settings)
+    _, averaged = _exact_moments(truth, shape, camera)
+    mixed = mixed_moments(observation.coverage_moments, averaged.numpy(), parts)
+    out = dv.discover_video(problem, replace(observation, coverage_moments=mixed), span, candidates=CANDIDATES,
+                            settings=dv.VIDEO_SELECTION, truth=truth, overlay=False,
+                            exposure=recording_exposure(truth))
+    return {"parts": list(parts), "verdict": out["verdict"], "verdict_withheld": out.get("verdict_withheld"),
+            "iou_final": out["iou_final"], "report": out["report"]}
+
+
 def _setting_args(args: list[str]) -> dict:
     """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
     return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
@@ -918,17 +1002,20 @@ def main(argv: list[str]) -> None:
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
-                "blur-estimate": blur_estimate}
+                "blur-estimate": blur_estimate, "exact-coverage": exact_coverage, "area": area}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
     # exposure: fractions=F1,F2,... in place of EXPOSURE_GRID
     fractions = [a for a in argv[2:] if a.startswith("fractions=")] if command == "exposure" else []
-    argv = [a for a in argv if a not in fractions]
+    # exact-coverage: parts=P1,P2 of COVERAGE_PARTS (default all)
+    parts = [a for a in argv[2:] if a.startswith("parts=")] if command == "exact-coverage" else []
+    argv = [a for a in argv if a not in fractions + parts]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
-                          "blur-estimate")
+                          "blur-estimate", "exact-coverage", "area")
     # the segmentation settings of blur, search, exposure and blur-estimate, SETTING=V after the names (e.g. albedo_passes=1)
-    changes = _setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate") else {}
+    changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "exact-coverage",
+                                                      "area") else {})
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
@@ -936,12 +1023,19 @@ def main(argv: list[str]) -> None:
     if fractions:
         grid = tuple(float(f) for f in fractions[-1].split("=", 1)[1].split(","))
         label += "_fractions" + "_".join(f"{f:g}" for f in grid)
+    chosen = tuple(parts[-1].split("=", 1)[1].split(",")) if parts else COVERAGE_PARTS
+    if not set(chosen) <= set(COVERAGE_PARTS):
+        sys.exit(f"exact-coverage: parts= takes some of {', '.join(COVERAGE_PARTS)}, got {','.join(chosen)}")
+    if parts:
+        label += "_exact_" + "_".join(chosen)
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
         extra = {"settings": SegmentationSettings(**changes)} if changes else {}
         if fractions:
             extra["fractions"] = grid
+        if parts:
+            extra["parts"] = chosen
         result = commands[command](folder / name, *([] if several else argv[3:]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
