@@ -325,7 +325,7 @@ class _Model:
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
-    edge: tuple[float, float] = (0.0, 0.0)
+    edge: tuple[float, ...] = (0.0, 0.0)
 
 
 @dataclass(eq=False)
@@ -377,8 +377,8 @@ class VideoProblem:
         fit_exposure: fit the exposure's fraction as a nuisance of every model (one more
             parameter, no prior), starting at ``exposure.fraction``: the coverage's blur is a
             speed sensor, and one read longer or shorter than the model's exposure would
-            otherwise be taken up by a wrong clock (experiments/discover/HISTORY.md, *What a
-            clock is on a ball*).
+            otherwise be taken up by a wrong clock (experiments/discover/HISTORY.md, *The clip
+            that made mass*, "Where the clock comes from").
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -480,7 +480,7 @@ class VideoProblem:
         observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
         return self._channels_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge)
 
-    def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, float]) -> dict:
+    def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...]) -> dict:
         """:meth:`_channels` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
         observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, edge))
         used = self.problem.used
@@ -514,14 +514,14 @@ class VideoProblem:
 
     # -- Levenberg-Marquardt on the normalised channels ----------------------------------------
 
-    def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, float],
+    def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, ...],
                 mask: Tensor) -> Tensor:
         """(B, N + 2) whitened residuals of the frames in ``mask`` (channel-major, see
         :meth:`_whitened`), then the edge bias's prior terms ``(b0 / EDGE_PRIOR_PX, b1 /
         EDGE_SHAPE_PRIOR_PX)``."""
         return self._vector_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge, mask)
 
-    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, float], mask: Tensor) -> Tensor:
+    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...], mask: Tensor) -> Tensor:
         """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
         channels = self._channels_of(fitted, edge)
         prior = torch.tensor(_edge_prior(edge), dtype=channels[CHANNELS[0]].dtype,
@@ -530,8 +530,8 @@ class VideoProblem:
         return torch.cat([self._whitened(channels[c][:, mask], frames, c) for c in CHANNELS] + [prior], -1)
 
     def _build(self, model: _Model, state: Tensor,
-               extra: Tensor) -> tuple[Candidates, list[Effect], tuple[float, float]]:
-        """Candidates (B = len(state)), effects and edge bias at ``model`` moved by scaled steps.
+               extra: Tensor) -> tuple[Candidates, list[Effect], tuple[float, ...]]:
+        """Candidates (B = len(state)), effects and nuisances at ``model`` moved by scaled steps.
 
         ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + K,) the effect parameters in
         units of ``EFFECT_SCALES``, then the model's K nuisances in units of ``NUISANCE_SCALES``
@@ -656,7 +656,7 @@ class VideoProblem:
             jac[:, 14 + n_effect + 2] = (exposure_row[0] - base) / exposure_row[1]
         return base.double(), jac.double()
 
-    def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, float]]],
+    def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
                   mask: Tensor) -> list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]]:
         """Several models' rows in one flight and render.
 
@@ -779,7 +779,7 @@ class VideoProblem:
                 break
         return [(run.model, run.resid, run.jac) for run in runs]
 
-    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, float], dict]:
+    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, ...], dict]:
         """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
         :func:`torchfit.discover.alone_std` the second), of the nuisances (the edge bias's two
         terms in pixels, and a fitted exposure's fraction), and
@@ -827,7 +827,7 @@ class VideoProblem:
                 }
         return params
 
-    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, float], dict],
+    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict],
                held_model: _Model) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
