@@ -93,6 +93,25 @@ def test_exposure_average_is_the_average_of_the_silhouette_over_the_shutter(taps
             Exposure(**bad)
 
 
+def _blurred_throw():
+    """:func:`_throw` drawn as a generated recording is: its (T, 120, 160) coverage averaged over
+    5 sub-frames over half the frame interval, each sampled at pixel centres; the problem's masks
+    and boxes are the coverage's 0.5 contour. Returns the problem, the true candidate and the coverage."""
+    problem, cands = _throw()
+    frames = len(problem.times)
+    rot, position, motion = candidate_poses(problem, cands, frames)
+    half = torch.tensor(0.25 / FPS, dtype=F64)
+    cover = torch.zeros(frames, 120, 160, dtype=F64)
+    for offset in torch.linspace(-1.0, 1.0, 5, dtype=F64) * half:
+        r, p, _ = exposure_poses(rot, position, motion, problem.body.com, cands.gravity(problem.g), offset)
+        cover += render_silhouettes(problem.mesh, problem.camera, r, p, full_window(problem.camera, 1, frames, dtype=F64),
+                                    size=(120, 160), sigma=None)[0] / 5
+    masks = cover >= 0.5
+    problem.masks = masks.to(F64)
+    problem.boxes = torch.as_tensor(np.nan_to_num(_boxes(masks.numpy())), dtype=F64)
+    return problem, cands, cover
+
+
 def test_coverage_against_the_exposure_fits_a_blurred_throw_that_masks_do_not():
     """A thrown box drawn as a generated recording is (coverage averaged over 5 sub-frames over
     half the frame interval, each sampled at pixel centres): at the true model the soft coverage
@@ -104,19 +123,8 @@ def test_coverage_against_the_exposure_fits_a_blurred_throw_that_masks_do_not():
     import torchfit.discover_video as dv
     from torchfit.discover_video import _Model
 
-    problem, cands = _throw()
-    frames = len(problem.times)
+    problem, cands, cover = _blurred_throw()
     exposure = Exposure(0.5, 5)
-    rot, position, motion = candidate_poses(problem, cands, frames)
-    half = torch.tensor(0.25 / FPS, dtype=F64)
-    cover = torch.zeros(frames, 120, 160, dtype=F64)
-    for offset in torch.linspace(-1.0, 1.0, 5, dtype=F64) * half:
-        r, p, _ = exposure_poses(rot, position, motion, problem.body.com, cands.gravity(problem.g), offset)
-        cover += render_silhouettes(problem.mesh, problem.camera, r, p, full_window(problem.camera, 1, frames, dtype=F64),
-                                    size=(120, 160), sigma=None)[0] / 5
-    masks = cover >= 0.5
-    problem.masks = masks.to(F64)
-    problem.boxes = torch.as_tensor(np.nan_to_num(_boxes(masks.numpy())), dtype=F64)
     base = _Model(cands, {})
     rms = {}
     for label, kwargs in (("mask", {}), ("coverage", {"exposure": exposure,
@@ -137,23 +145,13 @@ def test_fitted_exposure_finds_the_shutter_the_blur_was_drawn_with():
     On the blurred throw drawn over half the frame interval, started at a quarter, the refit from
     the true flight finds the fraction the coverage was drawn with (measured 0.484; its standard
     error, 0.15, is against noise floors taken at the start, where the quarter leaves the shape
-    channel far off), while the
-    given exposure alone (not fitted) leaves the shape channel further off. A fraction outside
+    channel far off), while the given exposure alone (not fitted) leaves the shape channel
+    further off. A fraction outside
     [0, 1] is refused as a step out of its domain."""
     import torchfit.discover_video as dv
     from torchfit.discover_video import _Model
 
-    problem, cands = _throw()
-    frames = len(problem.times)
-    rot, position, motion = candidate_poses(problem, cands, frames)
-    half = torch.tensor(0.25 / FPS, dtype=F64)
-    cover = torch.zeros(frames, 120, 160, dtype=F64)
-    for offset in torch.linspace(-1.0, 1.0, 5, dtype=F64) * half:
-        r, p, _ = exposure_poses(rot, position, motion, problem.body.com, cands.gravity(problem.g), offset)
-        cover += render_silhouettes(problem.mesh, problem.camera, r, p, full_window(problem.camera, 1, frames, dtype=F64),
-                                    size=(120, 160), sigma=None)[0] / 5
-    problem.masks = (cover >= 0.5).to(F64)
-    problem.boxes = torch.as_tensor(np.nan_to_num(_boxes((cover >= 0.5).numpy())), dtype=F64)
+    problem, cands, cover = _blurred_throw()
     coverage = torch.as_tensor(raw_moments(cover.numpy()))
     video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.25, 5), coverage=coverage, fit_exposure=True)
     start = _Model(cands, {}, video.start_nuisances())
