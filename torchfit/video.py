@@ -23,9 +23,10 @@ the static scene:
    The mask is ``a >= 0.5``: for an exposure centred on the frame time a moving edge is half
    covered exactly at its position at that time. Closed, largest component, holes filled.
    The coverage itself, within ``SegmentationSettings.coverage_near_px`` of the mask (clipped to
-   [0, 1] unless ``SegmentationSettings.coverage_clip`` is off), is kept as its raw moments (``Observation.coverage_moments``): moments are linear
-   in coverage, so a blurred frame's are the exposure's average of the silhouette's (what
-   ``discover`` compares with an exposure, :class:`torchfit.search.Exposure`).
+   [0, 1] unless ``SegmentationSettings.coverage_clip`` is off), is kept as its raw moments
+   (``Observation.coverage_moments``): moments are linear in coverage, so a blurred frame's are
+   the exposure's average of the silhouette's (what ``discover`` compares with an exposure,
+   :class:`torchfit.search.Exposure`).
 
 The mixing model holds in light. A camera stores light through a curve (BT.709, sRGB), so the
 values are decoded to light before any of the above, through the curve the file names

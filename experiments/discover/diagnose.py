@@ -790,6 +790,17 @@ def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
 NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than the settings' coverage_near_px for the coverage's moments
 
 
+def _coverage_within(kept: list, masks: np.ndarray, band: int, clip: bool = True) -> np.ndarray:
+    """(T, 6) raw moments of each frame's soft coverage (``kept``, (H, W) each) within ``band``
+    4-neighbour steps of its mask, clipped to [0, 1] or not, as the segmentation keeps them."""
+    from scipy import ndimage
+
+    from torchfit.video import raw_moments
+
+    return raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * ndimage.binary_dilation(m, iterations=band)
+                                 for c, m in zip(kept, masks)]))
+
+
 def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     """Can the exposure be read from the blur alone, without the fit? Two estimates from the
     segmentation, each against the recording's true fraction.
@@ -818,20 +829,16 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     mid, averaged = _exact_moments(truth, shape, camera)
     mid, averaged = _raw(mid).numpy(), averaged.numpy()
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
-
-    def coverage_within(band: int, clip: bool = True) -> np.ndarray:  # (T, 6) raw moments, as the segmentation keeps them
-        return raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * ndimage.binary_dilation(m, iterations=band)
-                                     for c, m in zip(kept, masks)]))
-
-    cover, mask = coverage_within((settings or SegmentationSettings()).coverage_near_px), raw_moments(masks)
+    cover = _coverage_within(kept, masks, (settings or SegmentationSettings()).coverage_near_px)
+    mask = raw_moments(masks)
     used = _whole(masks)
     used[[0, -1]] = False
     velocity = np.gradient(mid[:, 1:3] / mid[:, :1], axis=0)
     w = own.end_weight
     pairs = {"exact average / exact": (averaged, mid), "coverage / exact": (cover, mid),
              "coverage / mask": (cover, mask), "exact average / mask": (averaged, mask)}
-    pairs |= {f"coverage within {near} px / exact": (coverage_within(near), mid) for near in NEAR_PX}
-    pairs |= {f"unclipped coverage within {near} px / exact": (coverage_within(near, False), mid)
+    pairs |= {f"coverage within {near} px / exact": (_coverage_within(kept, masks, near), mid) for near in NEAR_PX}
+    pairs |= {f"unclipped coverage within {near} px / exact": (_coverage_within(kept, masks, near, False), mid)
               for near in (4, *NEAR_PX)}
     moments = {k: _along_motion_fraction(a, b, velocity, used, w) for k, (a, b) in pairs.items()}
     area = {}  # the coverage's m00 over the exact average's: mean, sd and drift (end minus start of a line) over frames
@@ -879,7 +886,7 @@ def area(folder: Path, settings=None) -> dict:
     its correlation with the contrast and its sd over the used frames."""
     from scipy import ndimage
 
-    from torchfit.video import _read_video, raw_moments
+    from torchfit.video import _read_video
 
     truth, shape, camera = recording_parts(folder)
     _, averaged = _exact_moments(truth, shape, camera)
@@ -900,9 +907,7 @@ def area(folder: Path, settings=None) -> dict:
     rows = {}
     for clip in (True, False):
         for band in AREA_BANDS:
-            cover = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * ndimage.binary_dilation(m, iterations=band)
-                                          for c, m in zip(kept, masks)]))
-            ratio = cover[:, 0] / averaged[:, 0]
+            ratio = _coverage_within(kept, masks, band, clip)[:, 0] / averaged[:, 0]
             row = {"high": float(ratio[high].mean()) if high.any() else None,
                    "low": float(ratio[low].mean()) if low.any() else None,
                    "corr_contrast": float(np.corrcoef(contrast[used], ratio[used])[0, 1]), "sd": float(ratio[used].std())}
@@ -1013,7 +1018,7 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions + parts]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "exact-coverage", "area")
-    # the segmentation settings of blur, search, exposure and blur-estimate, SETTING=V after the names (e.g. albedo_passes=1)
+    # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "exact-coverage",
                                                       "area") else {})
     if command == "search" and not changes:
