@@ -557,3 +557,12 @@ def test_mixed_moments_take_each_part_from_its_source():
     own, true = central_moments(torch.as_tensor(seen[:2])), central_moments(torch.as_tensor(exact[:2]))
     assert torch.allclose(mixed[0], own[0]) and torch.allclose(mixed[1], true[1]) and torch.allclose(mixed[2], own[2])
     assert np.all(diag.mixed_moments(seen, exact, ("area",))[2] == 0)
+    # the shape's error split: spread (isotropic) and stretch (traceless) add up to the whole
+    spread, stretch = (central_moments(torch.as_tensor(diag.mixed_moments(seen, exact, (p,))[:2]))[2]
+                       for p in diag.SHAPE_PARTS)
+    error = true[2] - own[2]
+    assert torch.allclose(spread - own[2], error.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(2,
+                                                                                     dtype=torch.float64))
+    assert torch.allclose((spread - own[2]) + (stretch - own[2]), error)
+    assert torch.allclose(stretch[:, 0, 0] + stretch[:, 1, 1], own[2][:, 0, 0] + own[2][:, 1, 1])
+    assert np.allclose(diag.mixed_moments(seen, exact, diag.SHAPE_PARTS), diag.mixed_moments(seen, exact, ("shape",)))

@@ -15,8 +15,9 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME... [SETTING=V...]  # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py blur-estimate SET NAME... [SETTING=V...]  # the exposure read from the blur alone, ~25 s each
+    python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~40 s each
     python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
-    python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape]  # discover with the exposure on a coverage partly exact, ~8 min each
+    python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape|spread|stretch]  # discover with the exposure on a coverage partly exact, ~8 min each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
     python experiments/discover/diagnose.py clip SET NAME...           # what blur does to a ball's 0.5 contour, by geometry alone, ~1 s each
@@ -873,6 +874,70 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
                      "travel_px": travel.tolist(), "width_px": width.tolist()}}
 
 
+SPEED_BANDS = (("steps", 4), ("steps", 6), ("steps", 8), ("px", 4), ("px", 6), ("px", 8), ("px", 12))  # blur-speed
+
+
+def _band(mask: np.ndarray, kind: str, width: int) -> np.ndarray:
+    """(H, W) bool: the pixels within ``width`` of ``mask`` ((H, W) bool), counted in 4-neighbour
+    ``steps`` (as the segmentation's ``coverage_near_px``) or in Euclidean ``px``."""
+    from scipy import ndimage
+
+    if kind == "steps":
+        return ndimage.binary_dilation(mask, iterations=width)
+    return ndimage.distance_transform_edt(~mask) <= width
+
+
+def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
+    """Does the coverage read the blur at a fraction that depends on the speed? Per frame, the
+    soft coverage's variance along the motion minus the exact exposure average's
+    (:func:`_exact_moments`; px^2; velocity from the exact frame-time centroids), with the
+    coverage counted within each band of ``SPEED_BANDS`` (4-neighbour steps or Euclidean px of
+    the mask), clipped to [0, 1] and not. Frames are binned by speed (``bins`` quantiles); per
+    bin the mean excess along and across the motion, the blur's half-length ``e |v| / 2``
+    (px, the recording's exposure ``e``) and the area ratio. ``slope``: the excess along the
+    motion regressed on ``|v|^2`` (with a constant), px^2 per (px/frame)^2; a band that reads
+    the blur at the true fraction has slope 0."""
+    from torchfit.losses import central_moments
+    from torchfit.video import raw_moments
+
+    truth, shape, camera = recording_parts(folder)
+    own = recording_exposure(truth)
+    mid, averaged = _exact_moments(truth, shape, camera)
+    mid, averaged = _raw(mid).numpy(), averaged.numpy()
+    masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
+    used = _whole(masks)
+    used[[0, -1]] = False
+    velocity = np.gradient(mid[:, 1:3] / mid[:, :1], axis=0)[used]
+    speed = np.linalg.norm(velocity, axis=1)
+    along = velocity / np.maximum(speed, 1e-9)[:, None]
+    across = np.stack((-along[:, 1], along[:, 0]), 1)
+
+    def covariance(raw):
+        return central_moments(torch.as_tensor(raw, dtype=torch.float64))[2].numpy()[used]
+
+    reference = covariance(averaged)
+    edges = np.quantile(speed, np.linspace(0, 1, bins + 1))
+    which = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, bins - 1)
+    out = {"true_exposure": own.fraction, "frames": int(used.sum()),
+           "speed_px_per_frame": [float(speed[which == b].mean()) for b in range(bins)],
+           "half_blur_px": [float(own.fraction * speed[which == b].mean() / 2) for b in range(bins)], "bands": {}}
+    design = np.stack((np.ones_like(speed), speed**2), 1)
+    for clip in (True, False):
+        for kind, width in SPEED_BANDS:
+            raw = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * _band(m, kind, width)
+                                        for c, m in zip(kept, masks)]))
+            excess = covariance(raw) - reference
+            on = np.einsum("ti,tij,tj->t", along, excess, along)
+            off = np.einsum("ti,tij,tj->t", across, excess, across)
+            ratio = raw[used, 0] / averaged[used, 0]
+            out["bands"][f"{'clipped' if clip else 'unclipped'} within {width} {kind}"] = {
+                "along_px2": [float(on[which == b].mean()) for b in range(bins)],
+                "across_px2": [float(off[which == b].mean()) for b in range(bins)],
+                "area_ratio": [float(ratio[which == b].mean()) for b in range(bins)],
+                "slope": [float(v) for v in np.linalg.lstsq(design, on, rcond=None)[0]]}
+    return out
+
+
 AREA_BANDS = (2, 4, 6, 8, 12)  # area: the bands the coverage is counted within
 LOW_CONTRAST = 50.0  # area: grey levels of object minus background below which a frame counts as low-contrast
 
@@ -918,11 +983,15 @@ def area(folder: Path, settings=None) -> dict:
 
 
 COVERAGE_PARTS = ("area", "centroid", "shape")  # exact-coverage: the coverage's parts that can come from the truth
+SHAPE_PARTS = ("spread", "stretch")  # exact-coverage: the shape's isotropic part and the rest, each alone
 
 
 def mixed_moments(seen: np.ndarray, exact: np.ndarray, parts: tuple[str, ...]) -> np.ndarray:
-    """(T, 6) raw moments with the ``parts`` (of ``COVERAGE_PARTS``) of ``exact`` and the rest of
-    ``seen`` (both (T, 6) raw moments about one origin); frames ``seen`` leaves empty stay so."""
+    """(T, 6) raw moments with the ``parts`` (of ``COVERAGE_PARTS`` and ``SHAPE_PARTS``) of
+    ``exact`` and the rest of ``seen`` (both (T, 6) raw moments about one origin); frames ``seen``
+    leaves empty stay so. The shape's error (the covariance's, exact minus seen) splits into
+    ``spread``, its isotropic part (half its trace times the identity), and ``stretch``, the rest
+    (traceless: elongation and its axis); ``shape`` is both."""
     from torchfit.losses import central_moments
 
     seen_t = torch.as_tensor(seen, dtype=torch.float64)
@@ -930,7 +999,12 @@ def mixed_moments(seen: np.ndarray, exact: np.ndarray, parts: tuple[str, ...]) -
     unit = torch.tensor([1.0, 0.0, 0.0, 1.0, 0.0, 1.0], dtype=torch.float64)  # stands in for an empty frame
     own = central_moments(torch.where(empty[:, None], unit, seen_t))
     truth = central_moments(torch.as_tensor(exact, dtype=torch.float64))
-    mixed = _raw(tuple(e if name in parts else o for name, e, o in zip(COVERAGE_PARTS, truth, own))).numpy()
+    chosen = [e if name in parts else o for name, e, o in zip(COVERAGE_PARTS, truth, own)]
+    if "shape" not in parts:
+        error = truth[2] - own[2]  # (T, 2, 2)
+        spread = error.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(2, dtype=torch.float64)
+        chosen[2] = own[2] + ("spread" in parts) * spread + ("stretch" in parts) * (error - spread)
+    mixed = _raw(tuple(chosen)).numpy()
     mixed[empty.numpy()] = np.asarray(seen)[empty.numpy()]
     return mixed
 
@@ -1007,7 +1081,7 @@ def main(argv: list[str]) -> None:
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
-                "blur-estimate": blur_estimate, "exact-coverage": exact_coverage, "area": area}
+                "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1017,10 +1091,10 @@ def main(argv: list[str]) -> None:
     parts = [a for a in argv[2:] if a.startswith("parts=")] if command == "exact-coverage" else []
     argv = [a for a in argv if a not in fractions + parts]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
-                          "blur-estimate", "exact-coverage", "area")
+                          "blur-estimate", "blur-speed", "exact-coverage", "area")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
-    changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "exact-coverage",
-                                                      "area") else {})
+    changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
+                                                      "exact-coverage", "area") else {})
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
@@ -1029,8 +1103,9 @@ def main(argv: list[str]) -> None:
         grid = tuple(float(f) for f in fractions[-1].split("=", 1)[1].split(","))
         label += "_fractions" + "_".join(f"{f:g}" for f in grid)
     chosen = tuple(parts[-1].split("=", 1)[1].split(",")) if parts else COVERAGE_PARTS
-    if not set(chosen) <= set(COVERAGE_PARTS):
-        sys.exit(f"exact-coverage: parts= takes some of {', '.join(COVERAGE_PARTS)}, got {','.join(chosen)}")
+    if not set(chosen) <= set(COVERAGE_PARTS + SHAPE_PARTS):
+        sys.exit(f"exact-coverage: parts= takes some of {', '.join(COVERAGE_PARTS + SHAPE_PARTS)}, "
+                 f"got {','.join(chosen)}")
     if parts:
         label += "_exact_" + "_".join(chosen)
     for name in names:
