@@ -186,7 +186,11 @@ EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 # Step unit of a fitted exposure's fraction (VideoProblem(fit_exposure=True)); it has no prior.
 EXPOSURE_SCALE = 0.05
-NUISANCE_SCALES = (EDGE_SCALE, EDGE_SCALE, EXPOSURE_SCALE)  # the model's edge tuple, term by term
+# Step unit of a fitted point spread (VideoProblem(fit_point_spread=True)), px^2; it has no prior.
+POINT_SPREAD_SCALE = 0.5
+# The nuisances a model can fit, in the order of its edge tuple, and their step units
+NUISANCE_SCALES = {"edge": EDGE_SCALE, "edge_shape": EDGE_SCALE, "point_spread": POINT_SPREAD_SCALE,
+                   "exposure": EXPOSURE_SCALE}
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 # The nuisance's second term: the bias is b0 + b1 e cos(2 phi), phi the angle between the outline
 # normal and the silhouette's major axis, e its elongation (see normal_axis_angle). b1 < 0: the
@@ -320,8 +324,9 @@ class _Model:
     every model fits, ``edge``: the segmentation edge bias ``(b0, b1)``, pixels the observed
     outline lies outside the true one, ``b0 + b1 e cos(2 phi)`` with ``phi`` the outline normal's
     angle to the major axis and ``e`` the silhouette's elongation (:func:`normal_axis_angle`);
-    then, where the exposure is fitted (``VideoProblem(fit_exposure=True)``), its fraction of
-    the frame interval."""
+    then, where fitted, the point spread (``VideoProblem(fit_point_spread=True)``, px^2) and
+    the exposure's fraction of the frame interval (``VideoProblem(fit_exposure=True)``), in the
+    order of :attr:`VideoProblem.nuisance_names`."""
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
@@ -379,6 +384,13 @@ class VideoProblem:
             speed sensor, and one read longer or shorter than the model's exposure would
             otherwise be taken up by a wrong clock (experiments/discover/HISTORY.md, *The clip
             that made mass*, "Where the clock comes from").
+        fit_point_spread: fit an isotropic variance ``s`` (px^2) added to every silhouette's
+            covariance as a nuisance of every model (one more parameter, no prior), starting at
+            0: the camera's point spread, which moves the soft coverage's second moments by ``s``
+            in every direction while keeping its area and centre, and which no shift of the
+            outline takes (that moves area and spread together). Unfitted on the coverage, it
+            was taken up by a wrong clock (experiments/discover/HISTORY.md, *A spread the
+            outline cannot take*). Needs the exposure (the coverage).
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -393,7 +405,7 @@ class VideoProblem:
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
-                 progress: Callable[[str], None] | None = None):
+                 fit_point_spread: bool = False, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -404,9 +416,15 @@ class VideoProblem:
                              f"coverage, got {None if coverage is None else tuple(coverage.shape)}")
         if fit_exposure and exposure is None:
             raise ValueError("fit_exposure needs an exposure to start from (and the frames' soft coverage)")
+        if fit_point_spread and exposure is None:
+            raise ValueError("fit_point_spread needs an exposure (the point spread is fitted to the frames' soft "
+                             "coverage, not to masks)")
         self.search_problem = problem
         self.exposure = exposure
         self.fit_exposure = fit_exposure
+        # the nuisances every model fits, in the order of _Model.edge
+        self.nuisance_names = (("edge", "edge_shape") + (("point_spread",) if fit_point_spread else ())
+                               + (("exposure",) if fit_exposure else ()))
         # refits run in float64: finite differences of a converged fit need more than float32 resolves
         problem = _as_float64(problem)
         self.problem = problem
@@ -448,9 +466,14 @@ class VideoProblem:
         return out
 
     def start_nuisances(self) -> tuple[float, ...]:
-        """A baseline's nuisances before its fit (:class:`_Model`'s ``edge``): no edge bias, and the
-        given exposure's fraction where the exposure is fitted."""
-        return (0.0, 0.0) + ((self.exposure.fraction,) if self.fit_exposure else ())
+        """A baseline's nuisances before its fit (:class:`_Model`'s ``edge``): no edge bias, no
+        point spread, and the given exposure's fraction where the exposure is fitted."""
+        return tuple(self.exposure.fraction if name == "exposure" else 0.0 for name in self.nuisance_names)
+
+    def nuisance(self, edge: tuple[float, ...], name: str) -> float | None:
+        """The nuisance ``name`` (of ``NUISANCE_SCALES``) in a model's ``edge`` tuple, None where
+        this problem does not fit it."""
+        return edge[self.nuisance_names.index(name)] if name in self.nuisance_names else None
 
     def residuals(self, model: _Model) -> dict:
         """Channel name -> (T,) residual (observed minus fitted), NaN outside the used frames."""
@@ -470,10 +493,19 @@ class VideoProblem:
         return candidate_moments(self.problem, cands, len(self.problem.times), effects, exposure=self.exposure,
                                  fractions=fractions)
 
-    @staticmethod
-    def _fraction(edge: tuple[float, ...]) -> float | None:
+    def _fraction(self, edge: tuple[float, ...]) -> float | None:
         """The fitted exposure's fraction in a model's nuisances, None where it is not fitted."""
-        return edge[2] if len(edge) > 2 else None
+        return self.nuisance(edge, "exposure")
+
+    def _spread(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
+        """B candidates' fitted moments (:meth:`_fitted_moments`) seen through the fitted point
+        spread: its variance (px^2) added to each covariance's diagonal (unchanged where it is not
+        fitted)."""
+        spread = self.nuisance(edge, "point_spread")
+        if spread is None:
+            return fitted
+        area, centre, cov = fitted
+        return area, centre, cov + spread * torch.eye(2, dtype=cov.dtype, device=cov.device)
 
     def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, ...]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
@@ -485,7 +517,7 @@ class VideoProblem:
         observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, edge))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
-                for k, v in channel_values(observed, fitted).items()}
+                for k, v in channel_values(observed, self._spread(fitted, edge)).items()}
 
     def _normalised(self, channels: dict, mask: np.ndarray) -> np.ndarray:
         """(N, C) residuals of the frames in ``mask`` divided by the noise floors."""
@@ -535,7 +567,8 @@ class VideoProblem:
 
         ``state``: (B, 14) in units of ``SCALES``; ``extra``: (P + K,) the effect parameters in
         units of ``EFFECT_SCALES``, then the model's K nuisances in units of ``NUISANCE_SCALES``
-        (the edge bias's two terms, and a fitted exposure's fraction, which must stay in [0, 1]).
+        (:attr:`nuisance_names`: the edge bias's two terms, a fitted point spread, and a fitted
+        exposure's fraction, which must stay in [0, 1]).
         """
         fields, offset = {}, 0
         for name, scale in SCALES.items():
@@ -551,16 +584,16 @@ class VideoProblem:
                 step = extra[offset:offset + value.numel()].view_as(value) * EFFECT_SCALES.get(pname, 0.1)
                 values[name][pname] = value + step.cpu()
                 offset += value.numel()
-        edge = tuple(b + scale * float(step) for b, step, scale
-                     in zip(model.edge, extra[offset:offset + len(model.edge)], NUISANCE_SCALES))
+        edge = tuple(b + NUISANCE_SCALES[name] * float(step) for b, step, name
+                     in zip(model.edge, extra[offset:offset + len(model.edge)], self.nuisance_names))
         fraction = self._fraction(edge)
         if fraction is not None and not 0.0 <= fraction <= 1.0:
             raise ValueError(f"an exposure must be a fraction of the frame interval in [0, 1], got {fraction}")
         return cands, self.effects(values), edge
 
     def _extra_count(self, model: _Model) -> int:
-        """Free parameters besides the 14 of the state: the effects' and the nuisances' (the edge
-        bias's two, and a fitted exposure's fraction)."""
+        """Free parameters besides the 14 of the state: the effects' and the nuisances'
+        (:attr:`nuisance_names`)."""
         return len(model.edge) + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
 
     def _free_count(self, model: _Model) -> int:
@@ -596,7 +629,8 @@ class VideoProblem:
         and the steps of every effect parameter (each effect takes one parameter value per
         candidate, :mod:`torchfit.effects`; a clock runs each candidate's flight on its own clock,
         :func:`torchfit.search.candidate_poses`). The edge bias's two columns only move the
-        observed outlines, so they reuse the unmoved render.
+        observed outlines and a point spread only the fitted covariances, so they reuse the
+        unmoved render.
         Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the covariance skip them.
         """
         return self._jacobians([model], mask, step)[0]
@@ -618,7 +652,7 @@ class VideoProblem:
             if self._fraction(model.edge) is not None:  # a fitted exposure's column renders once more
                 exposure_step = step if self._fraction(model.edge) + step * EXPOSURE_SCALE <= 1.0 else -step
                 shifted = zero_extra.clone()
-                shifted[-1] = exposure_step
+                shifted[n_extra - len(model.edge) + self.nuisance_names.index("exposure")] = exposure_step
                 one, _, moved = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
                 blocks.append((one, model.values, moved))
             plans.append((free, exposure_step))
@@ -636,7 +670,8 @@ class VideoProblem:
                            exposure_row: tuple[Tensor, float] | None = None) -> tuple[Tensor, Tensor]:
         """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N: unmoved, the F
         free state columns' steps, the E effect parameters' steps) and their fitted moments; the
-        edge bias's two columns are computed here from the unmoved render. ``exposure_row``: a
+        edge bias's and a point spread's columns are computed here from the unmoved render.
+        ``exposure_row``: a
         fitted exposure's (N,) row rendered with its fraction moved by the step given (scaled
         units; backward where forward would leave [0, 1])."""
         n_extra = self._extra_count(model)
@@ -647,13 +682,14 @@ class VideoProblem:
         jac[:, free.to(jac.device)] = ((rows[1:1 + len(free)] - base) / step).T
         jac[:, 14:14 + n_effect] = ((rows[1 + len(free):] - base) / step).T
         unmoved = tuple(m[:1] for m in fitted)
-        for k in range(2):
+        for k, name in enumerate(self.nuisance_names):
+            if name == "exposure":  # rendered once more
+                jac[:, 14 + n_effect + k] = (exposure_row[0] - base) / exposure_row[1]
+                continue
             shifted = zero_extra.clone()
             shifted[n_effect + k] = step
             _, _, edge = self._build(model, zero_state, shifted)
             jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, edge, mask)[0] - base) / step
-        if exposure_row is not None:
-            jac[:, 14 + n_effect + 2] = (exposure_row[0] - base) / exposure_row[1]
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
@@ -810,7 +846,7 @@ class VideoProblem:
                 part, solo = std[at:at + count].cpu() * scale, alone[at - start:at - start + count] * scale
                 out.setdefault(name, {})[pname] = tuple(x.tolist() if count > 1 else float(x[0]) for x in (part, solo))
                 at += count
-        nuisances = tuple(float(std[offset + k]) * scale for k, scale in zip(range(len(model.edge)), NUISANCE_SCALES))
+        nuisances = tuple(float(std[offset + k]) * NUISANCE_SCALES[name] for k, name in enumerate(self.nuisance_names))
         return out, nuisances, wald
 
     def _describe(self, model: _Model, std: dict) -> dict:
@@ -848,8 +884,10 @@ class VideoProblem:
                                  "edge_px": {"value": model.edge[0], "std": std[1][0],
                                              "ends_minus_sides": 2 * model.edge[1],
                                              "ends_minus_sides_std": 2 * std[1][1], "form": EDGE_FORM},
-                                 "exposure": (None if self._fraction(model.edge) is None
-                                              else {"value": self._fraction(model.edge), "std": std[1][2]}),
+                                 **{name: (None if name not in self.nuisance_names else
+                                           {"value": self.nuisance(model.edge, name),
+                                            "std": std[1][self.nuisance_names.index(name)]})
+                                    for name in ("exposure", "point_spread")},
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -1058,7 +1096,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
-                   fit_exposure: bool = False, progress: Callable[[str], None] | None = None) -> dict:
+                   fit_exposure: bool = False, fit_point_spread: bool = False,
+                   progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1078,6 +1117,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             (see :class:`VideoProblem`).
         fit_exposure: fit the exposure's fraction as a nuisance of every model, from
             ``exposure.fraction`` (see :class:`VideoProblem`).
+        fit_point_spread: fit the image's point spread (px^2) as a nuisance of every model, from 0
+            (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1092,7 +1133,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         coverage = torch.as_tensor(observation.coverage_moments[span])
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
-                         fit_exposure=fit_exposure, progress=say)
+                         fit_exposure=fit_exposure, fit_point_spread=fit_point_spread, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1121,6 +1162,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise_edge_px": edge_px,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
+        "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if fit_point_spread else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
@@ -1186,7 +1228,8 @@ def _unexplained(video: VideoProblem, final: ModelFit, located_after: dict, time
     if "shape" in flagged:
         model = final.payload["model"]
         with torch.no_grad():
-            fitted = video._fitted_moments(model.cands, video.effects(model.values), video._fraction(model.edge))
+            fitted = video._spread(video._fitted_moments(model.cands, video.effects(model.values),
+                                                         video._fraction(model.edge)), model.edge)
             observed = _moments_at(video.edge_table, model.edge)
         stretch = motion_stretch(observed[2].cpu().numpy(), fitted[1][0].cpu().numpy(),
                                  fitted[2][0].cpu().numpy(), times, used)
@@ -1310,6 +1353,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     if fitted is not None:
         lines.append(f"Exposure (a nuisance every model fits): {fitted['value']:.3f} ± {fitted['std']:.3f} of the frame "
                      f"interval, as the soft coverage's blur reads it (from {video.exposure.fraction:g}).")
+    fitted = final.payload.get("point_spread")
+    if fitted is not None:
+        lines.append(f"Point spread (a nuisance every model fits): {fitted['value']:+.2f} ± {fitted['std']:.2f} px² "
+                     f"added to the silhouette's variance in every direction, as the soft coverage reads it.")
     frames = np.flatnonzero(video.problem.used.cpu().numpy())
 
     def spread(score: dict) -> str:

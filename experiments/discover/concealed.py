@@ -76,7 +76,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
-            fit_exposure: bool = False) -> dict:
+            fit_exposure: bool = False, fit_point_spread: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
@@ -86,7 +86,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction) if exposure else None,
-                          fit_exposure=fit_exposure)
+                          fit_exposure=fit_exposure, fit_point_spread=fit_point_spread)
 
 
 def recording_exposure(truth: dict, fraction: float | None = None) -> Exposure:
@@ -106,11 +106,13 @@ def exposure_suffix(fraction: float | None) -> str:
 
 def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_fraction: float | None,
                         coverage_near_px: int | None, coverage_clip: bool | None = None,
-                        fit_exposure: bool = False) -> str:
+                        fit_exposure: bool = False, fit_point_spread: bool = False) -> str:
     """The results folder's suffix of the albedo pass, the exposure (given or fitted from the
-    fraction), the coverage band and the coverage's clip (empty for each left at its default)."""
+    fraction), a fitted point spread, the coverage band and the coverage's clip (empty for each
+    left at its default)."""
     return ((f"_albedo{albedo_passes}" if albedo_passes is not None else "")
             + (exposure_suffix(exposure_fraction) if exposure else "") + ("_fitted" if fit_exposure else "")
+            + ("_spread" if fit_point_spread else "")
             + (f"_near{coverage_near_px}" if coverage_near_px is not None else "")
             + ("_unclipped" if coverage_clip is False else ""))
 
@@ -619,7 +621,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
          read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
-         coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False) -> None:
+         coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
+         fit_point_spread: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -632,7 +635,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
-                                                  coverage_clip, fit_exposure)
+                                                  coverage_clip, fit_exposure, fit_point_spread)
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
@@ -654,7 +657,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
                           albedo_passes, read_as or transfer, exposure, exposure_fraction, coverage_near_px,
-                          coverage_clip, fit_exposure)
+                          coverage_clip, fit_exposure, fit_point_spread)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -699,6 +702,9 @@ if __name__ == "__main__":
     ap.add_argument("--fit-exposure", action="store_true",
                     help="with --exposure: fit the exposure's fraction as a nuisance of every model, from the "
                          "recording's own or --exposure-fraction (results/concealed..._exposure..._fitted/)")
+    ap.add_argument("--fit-point-spread", action="store_true",
+                    help="with --exposure: fit the image's point spread (px^2 added to every silhouette's variance) "
+                         "as a nuisance of every model (results/concealed..._exposure..._spread/)")
     ap.add_argument("--exposure-fraction", type=float, metavar="F",
                     help="with --exposure: this fraction of the frame interval instead of the recording's own, "
                          "as a user's guess would be (results/concealed..._exposure<F>/)")
@@ -727,7 +733,7 @@ if __name__ == "__main__":
         if args.albedo_passes is not None or args.exposure:
             suffix = segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction,
                                          args.coverage_near_px, False if args.unclipped else None,
-                                         args.fit_exposure)
+                                         args.fit_exposure, args.fit_point_spread)
             against = ("the exposure" if args.exposure_fraction is None
                        else f"an exposure of {args.exposure_fraction:g}")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
@@ -735,7 +741,8 @@ if __name__ == "__main__":
                               + ([f"coverage within {args.coverage_near_px} px"]
                                  if args.coverage_near_px is not None else [])
                               + (["unclipped"] if args.unclipped else [])
-                              + (["the exposure fitted"] if args.fit_exposure else []))
+                              + (["the exposure fitted"] if args.fit_exposure else [])
+                              + (["the point spread fitted"] if args.fit_point_spread else []))
             text = side_by_side(suffix, label, column="segmentation")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
@@ -771,6 +778,8 @@ if __name__ == "__main__":
                  f"least 1 px, got {args.coverage_near_px}")
     if args.fit_exposure and not args.exposure:
         ap.error("--fit-exposure needs --exposure (the fraction it starts from)")
+    if args.fit_point_spread and not args.exposure:
+        ap.error("--fit-point-spread needs --exposure (the point spread is fitted to the soft coverage)")
     if args.unclipped and not args.exposure:
         ap.error("--unclipped needs --exposure (only the exposure reads the coverage)")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
@@ -791,4 +800,4 @@ if __name__ == "__main__":
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
          args.read_as, args.exposure, args.exposure_fraction, args.coverage_near_px,
-         False if args.unclipped else None, args.fit_exposure)
+         False if args.unclipped else None, args.fit_exposure, args.fit_point_spread)
