@@ -671,9 +671,8 @@ class VideoProblem:
         """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N: unmoved, the F
         free state columns' steps, the E effect parameters' steps) and their fitted moments; the
         edge bias's and a point spread's columns are computed here from the unmoved render.
-        ``exposure_row``: a
-        fitted exposure's (N,) row rendered with its fraction moved by the step given (scaled
-        units; backward where forward would leave [0, 1])."""
+        ``exposure_row``: a fitted exposure's (N,) row rendered with its fraction moved by the
+        step given (scaled units; backward where forward would leave [0, 1])."""
         n_extra = self._extra_count(model)
         n_effect = n_extra - len(model.edge)  # the extras are the effects' parameters, then the nuisances
         zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
