@@ -566,3 +566,18 @@ def test_mixed_moments_take_each_part_from_its_source():
     assert torch.allclose((spread - own[2]) + (stretch - own[2]), error)
     assert torch.allclose(stretch[:, 0, 0] + stretch[:, 1, 1], own[2][:, 0, 0] + own[2][:, 1, 1])
     assert np.allclose(diag.mixed_moments(seen, exact, diag.SHAPE_PARTS), diag.mixed_moments(seen, exact, ("shape",)))
+
+
+def test_blur_speed_bands_reach_as_far_as_named():
+    """``diagnose.py blur-speed``'s bands around a one-pixel mask: 4-neighbour steps reach a
+    diamond, Euclidean px a disc, and px past half the travel a disc wider by half the frame's
+    travel (as far as any exposure's blur reaches)."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    mask = np.zeros((21, 21), bool)
+    mask[10, 10] = True
+    steps, disc = diag._band(mask, "steps", 3), diag._band(mask, "px", 3)
+    assert steps[10, 13] and not steps[12, 12] and disc[12, 12] and not disc[10, 14]
+    assert steps.sum() == 25 and disc.sum() == 29
+    wide = diag._band(mask, "px past half the travel", 2, travel=4.0)
+    assert np.array_equal(wide, diag._band(mask, "px", 4))

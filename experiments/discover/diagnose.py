@@ -874,17 +874,21 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
                      "travel_px": travel.tolist(), "width_px": width.tolist()}}
 
 
-SPEED_BANDS = (("steps", 4), ("steps", 6), ("steps", 8), ("px", 4), ("px", 6), ("px", 8), ("px", 12))  # blur-speed
+SPEED_BANDS = (("steps", 4), ("steps", 6), ("steps", 8), ("px", 4), ("px", 6), ("px", 8), ("px", 12),
+               ("px past half the travel", 2), ("px past half the travel", 3))  # blur-speed
 
 
-def _band(mask: np.ndarray, kind: str, width: int) -> np.ndarray:
+def _band(mask: np.ndarray, kind: str, width: int, travel: float = 0.0) -> np.ndarray:
     """(H, W) bool: the pixels within ``width`` of ``mask`` ((H, W) bool), counted in 4-neighbour
-    ``steps`` (as the segmentation's ``coverage_near_px``) or in Euclidean ``px``."""
+    ``steps`` (as the segmentation's ``coverage_near_px``), in Euclidean ``px``, or in Euclidean
+    ``px past half the travel``: ``width`` px beyond half the frame's ``travel`` (px per frame),
+    as far as the blur of any exposure up to the whole frame interval reaches."""
     from scipy import ndimage
 
     if kind == "steps":
         return ndimage.binary_dilation(mask, iterations=width)
-    return ndimage.distance_transform_edt(~mask) <= width
+    reach = width + (travel / 2 if kind == "px past half the travel" else 0.0)
+    return ndimage.distance_transform_edt(~mask) <= reach
 
 
 def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
@@ -892,7 +896,8 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
     soft coverage's variance along the motion minus the exact exposure average's
     (:func:`_exact_moments`; px^2; velocity from the exact frame-time centroids), with the
     coverage counted within each band of ``SPEED_BANDS`` (4-neighbour steps or Euclidean px of
-    the mask), clipped to [0, 1] and not. Frames are binned by speed (``bins`` quantiles); per
+    the mask, or px past half the mask centroid's travel in the frame: the video alone), clipped
+    to [0, 1] and not. Frames are binned by speed (``bins`` quantiles); per
     bin the mean excess along and across the motion, the blur's half-length ``e |v| / 2``
     (px, the recording's exposure ``e``) and the area ratio. ``slope``: the excess along the
     motion regressed on ``|v|^2`` (with a constant), px^2 per (px/frame)^2; a band that reads
@@ -922,10 +927,12 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
            "speed_px_per_frame": [float(speed[which == b].mean()) for b in range(bins)],
            "half_blur_px": [float(own.fraction * speed[which == b].mean() / 2) for b in range(bins)], "bands": {}}
     design = np.stack((np.ones_like(speed), speed**2), 1)
+    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
+    travel = np.nan_to_num(np.linalg.norm(np.gradient(centre, axis=0), axis=1))  # (T,) px per frame, the video's
     for clip in (True, False):
         for kind, width in SPEED_BANDS:
-            raw = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * _band(m, kind, width)
-                                        for c, m in zip(kept, masks)]))
+            raw = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * _band(m, kind, width, v)
+                                        for c, m, v in zip(kept, masks, travel)]))
             excess = covariance(raw) - reference
             on = np.einsum("ti,tij,tj->t", along, excess, along)
             off = np.einsum("ti,tij,tj->t", across, excess, across)
