@@ -15,7 +15,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py sources FRESH NAME...      # the recording remade without each source of error, ~1 min each
     python experiments/discover/diagnose.py blur SET NAME... [SETTING=V...]  # coverage moments against the exposure's average, ~30 s each
     python experiments/discover/diagnose.py blur-estimate SET NAME... [SETTING=V...]  # the exposure read from the blur alone, ~25 s each
-    python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~40 s each
+    python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~30 s each
     python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
     python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape|spread|stretch]  # discover with the exposure on a coverage partly exact, ~8 min each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
@@ -791,6 +791,13 @@ def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
 NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than the settings' coverage_near_px for the coverage's moments
 
 
+def _mask_velocity(masks: np.ndarray) -> np.ndarray:
+    """(T, 2) px per frame: the (T, H, W) masks' centroids' central differences (NaN beside an
+    empty mask): the motion as the video alone gives it."""
+    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
+    return np.gradient(centre, axis=0)
+
+
 def _coverage_within(kept: list, masks: np.ndarray, band: int, clip: bool = True) -> np.ndarray:
     """(T, 6) raw moments of each frame's soft coverage (``kept``, (H, W) each) within ``band``
     4-neighbour steps of its mask, clipped to [0, 1] or not, as the segmentation keeps them."""
@@ -849,8 +856,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
             drift = np.polyfit((frame - frame.min()) / max(frame.max() - frame.min(), 1), ratio, 1)[0]
             area[k.removesuffix(" / exact")] = [float(ratio.mean()), float(ratio.std()), float(drift)]
 
-    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
-    mask_velocity = np.gradient(centre, axis=0)
+    mask_velocity = _mask_velocity(masks)
     x, ramp, grad = [], [], []
     for t in np.flatnonzero(used):
         c = np.clip(kept[t], 0.0, 1.0) * ndimage.binary_dilation(masks[t], iterations=6)
@@ -897,9 +903,9 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
     (:func:`_exact_moments`; px^2; velocity from the exact frame-time centroids), with the
     coverage counted within each band of ``SPEED_BANDS`` (4-neighbour steps or Euclidean px of
     the mask, or px past half the mask centroid's travel in the frame: the video alone), clipped
-    to [0, 1] and not. Frames are binned by speed (``bins`` quantiles); per
-    bin the mean excess along and across the motion, the blur's half-length ``e |v| / 2``
-    (px, the recording's exposure ``e``) and the area ratio. ``slope``: the excess along the
+    to [0, 1] and not. Frames are binned by speed (``bins`` quantiles); per bin the mean excess
+    along and across the motion, the blur's half-length ``e |v| / 2`` (px, the recording's
+    exposure ``e``) and the area ratio. ``slope``: the excess along the
     motion regressed on ``|v|^2`` (with a constant), px^2 per (px/frame)^2; a band that reads
     the blur at the true fraction has slope 0."""
     from torchfit.losses import central_moments
@@ -927,8 +933,7 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
            "speed_px_per_frame": [float(speed[which == b].mean()) for b in range(bins)],
            "half_blur_px": [float(own.fraction * speed[which == b].mean() / 2) for b in range(bins)], "bands": {}}
     design = np.stack((np.ones_like(speed), speed**2), 1)
-    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
-    travel = np.nan_to_num(np.linalg.norm(np.gradient(centre, axis=0), axis=1))  # (T,) px per frame, the video's
+    travel = np.nan_to_num(np.linalg.norm(_mask_velocity(masks), axis=1))  # (T,) px per frame, the video's
     for clip in (True, False):
         for kind, width in SPEED_BANDS:
             raw = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * _band(m, kind, width, v)
