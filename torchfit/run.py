@@ -428,6 +428,12 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if data.fps is not None and not float(data.fps) > 0:
         raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
     exposure = _exposure(data)
+    fit_exposure = data.get("fit_exposure", False)
+    if not isinstance(fit_exposure, bool):
+        raise ConfigError(f"data.fit_exposure must be true or false, got {fit_exposure!r}")
+    if fit_exposure and exposure is None:
+        raise ConfigError("data.fit_exposure fits the exposure from a start: set data.exposure too "
+                          "(e.g. data.exposure=0.5)")
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
     if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
@@ -446,7 +452,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     summary = discover_video(problem, observation, span, candidates=candidates, settings=rules,
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
-                             exposure=exposure, progress=ctx["progress"])
+                             exposure=exposure, fit_exposure=fit_exposure, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
