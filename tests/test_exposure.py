@@ -146,8 +146,7 @@ def test_fitted_exposure_finds_the_shutter_the_blur_was_drawn_with():
     the true flight finds the fraction the coverage was drawn with (measured 0.484; its standard
     error, 0.15, is against noise floors taken at the start, where the quarter leaves the shape
     channel far off), while the given exposure alone (not fitted) leaves the shape channel
-    further off. A fraction outside
-    [0, 1] is refused as a step out of its domain."""
+    further off. A fraction outside [0, 1] is refused as a step out of its domain."""
     import torchfit.discover_video as dv
     from torchfit.discover_video import _Model
 

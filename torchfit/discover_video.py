@@ -421,7 +421,6 @@ class VideoProblem:
                              "coverage, not to masks)")
         self.search_problem = problem
         self.exposure = exposure
-        self.fit_exposure = fit_exposure
         # the nuisances every model fits, in the order of _Model.edge
         self.nuisance_names = (("edge", "edge_shape") + (("point_spread",) if fit_point_spread else ())
                                + (("exposure",) if fit_exposure else ()))
