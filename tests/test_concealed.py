@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -503,6 +504,9 @@ def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
     assert (conc.exposure_suffix(None), conc.exposure_suffix(0.25)) == ("_exposure", "_exposure0.25")
     assert conc.segmentation_suffix(1, True, None, 8, False) == "_albedo1_exposure_near8_unclipped"
     assert conc.segmentation_suffix(1, True, None, None, None) == "_albedo1_exposure"
+    assert conc.segmentation_suffix(1, True, None, None, None, False, (0.0, math.inf)) == "_albedo1_exposure_spread"
+    assert (conc.segmentation_suffix(1, True, 0.25, None, None, True, (1.0, 0.5))
+            == "_albedo1_exposure0.25_fitted_spread1pm0.5")
 
 
 def test_blur_estimates_recover_a_known_exposure():

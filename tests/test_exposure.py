@@ -1,6 +1,8 @@
 """Motion blur in the model: poses over the exposure, the exposure's average moments, and the
 soft coverage they are compared with."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -172,7 +174,7 @@ def test_fitted_exposure_finds_the_shutter_the_blur_was_drawn_with():
 
 
 def test_fitted_point_spread_and_exposure_find_what_the_coverage_was_drawn_with():
-    """``VideoProblem(fit_point_spread=True)``: an isotropic variance added to every silhouette's
+    """``VideoProblem(point_spread=(0, inf))``: an isotropic variance added to every silhouette's
     covariance is a nuisance every model fits. The blurred throw's coverage seen through a point
     spread of 1.5 px² (its raw moments' m20 and m02 raised by 1.5 m00: area and centre kept) and
     drawn over half the frame interval: started at no spread and a quarter, the refit from the true
@@ -187,7 +189,7 @@ def test_fitted_point_spread_and_exposure_find_what_the_coverage_was_drawn_with(
     coverage[:, 3] += 1.5 * coverage[:, 0]
     coverage[:, 5] += 1.5 * coverage[:, 0]
     video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.25, 5), coverage=coverage,
-                            fit_exposure=True, fit_point_spread=True)
+                            fit_exposure=True, point_spread=(0.0, math.inf))
     assert video.nuisance_names == ("edge", "edge_shape", "point_spread", "exposure")
     start = _Model(cands, {}, video.start_nuisances())
     assert start.edge == (0.0, 0.0, 0.0, 0.25)
@@ -198,5 +200,42 @@ def test_fitted_point_spread_and_exposure_find_what_the_coverage_was_drawn_with(
     spread, fraction = video.nuisance(model.edge, "point_spread"), video.nuisance(model.edge, "exposure")
     assert abs(spread - 1.5) < 0.1 and 0 < std[2] < 1.0, (spread, fraction, std)
     assert abs(fraction - 0.5) < 0.03 and 0 < std[3] < 0.3, (spread, fraction, std)
-    with pytest.raises(ValueError, match="fit_point_spread needs"):
-        dv.VideoProblem(problem, candidates=(), fit_point_spread=True)
+    with pytest.raises(ValueError, match="point_spread needs"):
+        dv.VideoProblem(problem, candidates=(), point_spread=(0.0, math.inf))
+
+
+def test_point_spread_prior_holds_the_spread_and_counts_as_an_observation():
+    """``VideoProblem(point_spread=(mean, std))``: the spread starts at ``mean`` and its prior term
+    ``(s - mean) / std`` joins the edge bias's two among the residuals (and the criterion's
+    observations); without a prior (``std`` infinite) there is no term. The throw's coverage drawn
+    through 1.5 px²: a loose prior (1 ± 1 px²) still finds it (measured 1.52), a tight one at 0
+    (± 0.05 px²) holds the spread near 0 (measured 0.06). A bad prior is refused with its value."""
+    import torchfit.discover_video as dv
+    from torchfit.discover_video import EDGE_PRIOR_PX, EDGE_SHAPE_PRIOR_PX, _Model
+
+    problem, cands, cover = _blurred_throw()
+    coverage = torch.as_tensor(raw_moments(cover.numpy()))
+    coverage[:, 3] += 1.5 * coverage[:, 0]
+    coverage[:, 5] += 1.5 * coverage[:, 0]
+    everything = problem.used.cpu().numpy().astype(bool)
+    found = {}
+    for prior in ((1.0, 1.0), (0.0, 0.05)):
+        video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.5, 5), coverage=coverage,
+                                point_spread=prior)
+        start = _Model(cands, {}, video.start_nuisances())
+        assert start.edge == (0.0, 0.0, prior[0])
+        assert video.prior_terms((0.03, -0.06, 2.0)) == pytest.approx(
+            (0.03 / EDGE_PRIOR_PX, -0.06 / EDGE_SHAPE_PRIOR_PX, (2.0 - prior[0]) / prior[1]))
+        video._set_noise(start)
+        model, resid, jac = video._lm(start, everything, 15)
+        found[prior] = video.nuisance(model.edge, "point_spread")
+        fit = video._score((), model, video._uncertainty(model, resid, jac), model)
+        assert fit.n_obs == int(np.isfinite(np.concatenate(list(video.whitened_channels(
+            video.residuals(model), video.problem.used.cpu().numpy().astype(bool)).values()))).sum()) + 3
+    assert abs(found[(1.0, 1.0)] - 1.5) < 0.2, found
+    assert abs(found[(0.0, 0.05)]) < 0.2, found
+    free = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.5, 5), coverage=coverage,
+                           point_spread=(0.0, math.inf))
+    assert len(free.prior_terms((0.0, 0.0, 2.0))) == 2
+    with pytest.raises(ValueError, match="point_spread must be .*got \\(1.0, 0.0\\)"):
+        dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.5, 5), coverage=coverage, point_spread=(1.0, 0.0))

@@ -186,7 +186,7 @@ EDGE_SCALE = 0.2
 EDGE_PRIOR_PX = 0.15
 # Step unit of a fitted exposure's fraction (VideoProblem(fit_exposure=True)); it has no prior.
 EXPOSURE_SCALE = 0.05
-# Step unit of a fitted point spread (VideoProblem(fit_point_spread=True)), px^2; it has no prior.
+# Step unit of a fitted point spread (VideoProblem(point_spread=...)), px^2; its prior is the caller's.
 POINT_SPREAD_SCALE = 0.5
 # The nuisances a model can fit, in the order of its edge tuple, and their step units
 NUISANCE_SCALES = {"edge": EDGE_SCALE, "edge_shape": EDGE_SCALE, "point_spread": POINT_SPREAD_SCALE,
@@ -324,7 +324,7 @@ class _Model:
     every model fits, ``edge``: the segmentation edge bias ``(b0, b1)``, pixels the observed
     outline lies outside the true one, ``b0 + b1 e cos(2 phi)`` with ``phi`` the outline normal's
     angle to the major axis and ``e`` the silhouette's elongation (:func:`normal_axis_angle`);
-    then, where fitted, the point spread (``VideoProblem(fit_point_spread=True)``, px^2) and
+    then, where fitted, the point spread (``VideoProblem(point_spread=...)``, px^2) and
     the exposure's fraction of the frame interval (``VideoProblem(fit_exposure=True)``), in the
     order of :attr:`VideoProblem.nuisance_names`."""
 
@@ -384,9 +384,10 @@ class VideoProblem:
             speed sensor, and one read longer or shorter than the model's exposure would
             otherwise be taken up by a wrong clock (experiments/discover/HISTORY.md, *The clip
             that made mass*, "Where the clock comes from").
-        fit_point_spread: fit an isotropic variance ``s`` (px^2) added to every silhouette's
-            covariance as a nuisance of every model (one more parameter, no prior), starting at
-            0: the camera's point spread, which moves the soft coverage's second moments by ``s``
+        point_spread: ``(mean, std)`` px^2, or None: fit an isotropic variance ``s`` (px^2) added
+            to every silhouette's covariance as a nuisance of every model (one more parameter),
+            starting at ``mean``, with a Gaussian prior ``(s - mean) / std`` (``std`` infinite:
+            no prior; the prior term counts as one more observation): the camera's point spread, which moves the soft coverage's second moments by ``s``
             in every direction while keeping its area and centre, and which no shift of the
             outline takes (that moves area and spread together). Unfitted on the coverage, it
             was taken up by a wrong clock (experiments/discover/HISTORY.md, *A spread the
@@ -405,7 +406,7 @@ class VideoProblem:
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
-                 fit_point_spread: bool = False, progress: Callable[[str], None] | None = None):
+                 point_spread: tuple[float, float] | None = None, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -416,14 +417,25 @@ class VideoProblem:
                              f"coverage, got {None if coverage is None else tuple(coverage.shape)}")
         if fit_exposure and exposure is None:
             raise ValueError("fit_exposure needs an exposure to start from (and the frames' soft coverage)")
-        if fit_point_spread and exposure is None:
-            raise ValueError("fit_point_spread needs an exposure (the point spread is fitted to the frames' soft "
+        if point_spread is not None and exposure is None:
+            raise ValueError("point_spread needs an exposure (the point spread is fitted to the frames' soft "
                              "coverage, not to masks)")
+        if point_spread is not None and not (len(point_spread) == 2 and math.isfinite(point_spread[0])
+                                             and point_spread[1] > 0):
+            raise ValueError(f"point_spread must be (mean, std) px^2 with a finite mean and a positive std "
+                             f"(infinite: no prior), got {point_spread}")
         self.search_problem = problem
         self.exposure = exposure
         # the nuisances every model fits, in the order of _Model.edge
-        self.nuisance_names = (("edge", "edge_shape") + (("point_spread",) if fit_point_spread else ())
+        self.nuisance_names = (("edge", "edge_shape") + (("point_spread",) if point_spread is not None else ())
                                + (("exposure",) if fit_exposure else ()))
+        # each nuisance's start and Gaussian prior (mean, std): the exposure starts at the given
+        # fraction with no prior
+        self.priors = {"edge": (0.0, EDGE_PRIOR_PX), "edge_shape": (0.0, EDGE_SHAPE_PRIOR_PX)}
+        if point_spread is not None:
+            self.priors["point_spread"] = (float(point_spread[0]), float(point_spread[1]))
+        if fit_exposure:
+            self.priors["exposure"] = (exposure.fraction, math.inf)
         # refits run in float64: finite differences of a converged fit need more than float32 resolves
         problem = _as_float64(problem)
         self.problem = problem
@@ -465,9 +477,16 @@ class VideoProblem:
         return out
 
     def start_nuisances(self) -> tuple[float, ...]:
-        """A baseline's nuisances before its fit (:class:`_Model`'s ``edge``): no edge bias, no
-        point spread, and the given exposure's fraction where the exposure is fitted."""
-        return tuple(self.exposure.fraction if name == "exposure" else 0.0 for name in self.nuisance_names)
+        """A baseline's nuisances before its fit (:class:`_Model`'s ``edge``): each at its prior's
+        mean (no edge bias, the point spread's mean, the given exposure's fraction)."""
+        return tuple(self.priors[name][0] for name in self.nuisance_names)
+
+    def prior_terms(self, edge: tuple[float, ...]) -> tuple[float, ...]:
+        """The nuisances' prior terms ``(value - mean) / std`` (standard units), one per nuisance
+        with a finite prior (:attr:`priors`), in the order of :attr:`nuisance_names`; each counts
+        as one more observation in the criterion."""
+        return tuple((value - self.priors[name][0]) / self.priors[name][1]
+                     for value, name in zip(edge, self.nuisance_names) if math.isfinite(self.priors[name][1]))
 
     def nuisance(self, edge: tuple[float, ...], name: str) -> float | None:
         """The nuisance ``name`` (of ``NUISANCE_SCALES``) in a model's ``edge`` tuple, None where
@@ -547,16 +566,16 @@ class VideoProblem:
 
     def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, ...],
                 mask: Tensor) -> Tensor:
-        """(B, N + 2) whitened residuals of the frames in ``mask`` (channel-major, see
-        :meth:`_whitened`), then the edge bias's prior terms ``(b0 / EDGE_PRIOR_PX, b1 /
-        EDGE_SHAPE_PRIOR_PX)``."""
+        """(B, N + Q) whitened residuals of the frames in ``mask`` (channel-major, see
+        :meth:`_whitened`), then the Q nuisances' prior terms (:meth:`prior_terms`)."""
         return self._vector_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge, mask)
 
     def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...], mask: Tensor) -> Tensor:
         """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
         channels = self._channels_of(fitted, edge)
-        prior = torch.tensor(_edge_prior(edge), dtype=channels[CHANNELS[0]].dtype,
-                             device=mask.device).expand(len(fitted[0]), 2)
+        terms = self.prior_terms(edge)
+        prior = torch.tensor(terms, dtype=channels[CHANNELS[0]].dtype, device=mask.device).expand(len(fitted[0]),
+                                                                                                  len(terms))
         frames = mask.cpu().numpy()
         return torch.cat([self._whitened(channels[c][:, mask], frames, c) for c in CHANNELS] + [prior], -1)
 
@@ -700,7 +719,7 @@ class VideoProblem:
                 nuisances (:class:`_Model`'s ``edge``).
 
         Returns:
-            Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + 2)
+            Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + Q)
             vectors (:meth:`_vector`).
         """
         if len(blocks) == 1:
@@ -871,9 +890,10 @@ class VideoProblem:
         held_channels = self.residuals(held_model)
         held = self._normalised(held_channels, self.held)
         n_free = self._free_count(model)
-        # the edge bias's prior terms count as two more observations
-        rss = float(np.nansum(everything**2)) + sum(p * p for p in _edge_prior(model.edge))
-        n_obs = int(np.isfinite(everything).sum()) + 2
+        # the nuisances' prior terms count as observations
+        priors = self.prior_terms(model.edge)
+        rss = float(np.nansum(everything**2)) + sum(p * p for p in priors)
+        n_obs = int(np.isfinite(everything).sum()) + len(priors)
         centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
         held_centroid = np.hypot(held_channels["centroid_x"], held_channels["centroid_y"])
         return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std[0]), math.sqrt(rss / max(n_obs, 1)),
@@ -1000,11 +1020,6 @@ class VideoProblem:
                       for name in CHANNELS}
 
 
-def _edge_prior(edge: tuple[float, float]) -> tuple[float, float]:
-    """The edge bias's two prior terms (standard units) of ``edge = (b0, b1)`` pixels."""
-    return edge[0] / EDGE_PRIOR_PX, edge[1] / EDGE_SHAPE_PRIOR_PX
-
-
 def _render_full(problem: Problem, model: _Model, effects: Sequence[Effect]) -> np.ndarray:
     """(T, H, W) bool silhouettes of a model over the span, full frame: the flight of
     :func:`candidate_poses`, the one the fit sees (the renderer bounds its own memory)."""
@@ -1094,7 +1109,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
-                   fit_exposure: bool = False, fit_point_spread: bool = False,
+                   fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
@@ -1115,8 +1130,9 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             (see :class:`VideoProblem`).
         fit_exposure: fit the exposure's fraction as a nuisance of every model, from
             ``exposure.fraction`` (see :class:`VideoProblem`).
-        fit_point_spread: fit the image's point spread (px^2) as a nuisance of every model, from 0
-            (see :class:`VideoProblem`).
+        point_spread: ``(mean, std)`` px^2: fit the image's point spread as a nuisance of every
+            model, from ``mean`` with that Gaussian prior (``std`` infinite: none; see
+            :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1131,7 +1147,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         coverage = torch.as_tensor(observation.coverage_moments[span])
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
-                         fit_exposure=fit_exposure, fit_point_spread=fit_point_spread, progress=say)
+                         fit_exposure=fit_exposure, point_spread=point_spread, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1160,7 +1176,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise_edge_px": edge_px,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
-        "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if fit_point_spread else None,
+        "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if point_spread is not None else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
@@ -1353,8 +1369,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
                      f"interval, as the soft coverage's blur reads it (from {video.exposure.fraction:g}).")
     fitted = final.payload.get("point_spread")
     if fitted is not None:
+        mean, std = video.priors["point_spread"]
+        prior = f" (prior {mean:g} ± {std:g} px²)" if math.isfinite(std) else ""
         lines.append(f"Point spread (a nuisance every model fits): {fitted['value']:+.2f} ± {fitted['std']:.2f} px² "
-                     f"added to the silhouette's variance in every direction, as the soft coverage reads it.")
+                     f"added to the silhouette's variance in every direction, as the soft coverage reads it{prior}.")
     frames = np.flatnonzero(video.problem.used.cpu().numpy())
 
     def spread(score: dict) -> str:

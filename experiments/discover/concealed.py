@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 import time
@@ -76,7 +77,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
-            fit_exposure: bool = False, fit_point_spread: bool = False) -> dict:
+            fit_exposure: bool = False, point_spread: tuple[float, float] | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
@@ -86,7 +87,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction) if exposure else None,
-                          fit_exposure=fit_exposure, fit_point_spread=fit_point_spread)
+                          fit_exposure=fit_exposure, point_spread=point_spread)
 
 
 def recording_exposure(truth: dict, fraction: float | None = None) -> Exposure:
@@ -106,13 +107,15 @@ def exposure_suffix(fraction: float | None) -> str:
 
 def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_fraction: float | None,
                         coverage_near_px: int | None, coverage_clip: bool | None = None,
-                        fit_exposure: bool = False, fit_point_spread: bool = False) -> str:
+                        fit_exposure: bool = False, point_spread: tuple[float, float] | None = None) -> str:
     """The results folder's suffix of the albedo pass, the exposure (given or fitted from the
-    fraction), a fitted point spread, the coverage band and the coverage's clip (empty for each
-    left at its default)."""
+    fraction), a fitted point spread (``_spread`` without a prior, ``_spread<M>pm<S>`` with the
+    prior ``M ± S`` px^2), the coverage band and the coverage's clip (empty for each left at its
+    default)."""
     return ((f"_albedo{albedo_passes}" if albedo_passes is not None else "")
             + (exposure_suffix(exposure_fraction) if exposure else "") + ("_fitted" if fit_exposure else "")
-            + ("_spread" if fit_point_spread else "")
+            + ("" if point_spread is None else "_spread" + ("" if math.isinf(point_spread[1])
+                                                            else f"{point_spread[0]:g}pm{point_spread[1]:g}"))
             + (f"_near{coverage_near_px}" if coverage_near_px is not None else "")
             + ("_unclipped" if coverage_clip is False else ""))
 
@@ -622,7 +625,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
          read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
-         fit_point_spread: bool = False) -> None:
+         point_spread: tuple[float, float] | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -635,7 +638,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
-                                                  coverage_clip, fit_exposure, fit_point_spread)
+                                                  coverage_clip, fit_exposure, point_spread)
                             + "".join(f"_with_{name}" for name in extra)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
@@ -657,7 +660,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
                           albedo_passes, read_as or transfer, exposure, exposure_fraction, coverage_near_px,
-                          coverage_clip, fit_exposure, fit_point_spread)
+                          coverage_clip, fit_exposure, point_spread)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -704,7 +707,10 @@ if __name__ == "__main__":
                          "recording's own or --exposure-fraction (results/concealed..._exposure..._fitted/)")
     ap.add_argument("--fit-point-spread", action="store_true",
                     help="with --exposure: fit the image's point spread (px^2 added to every silhouette's variance) "
-                         "as a nuisance of every model (results/concealed..._exposure..._spread/)")
+                         "as a nuisance of every model, from 0 with no prior (results/concealed..._exposure..._spread/)")
+    ap.add_argument("--point-spread-prior", type=float, nargs=2, metavar=("M", "S"),
+                    help="with --exposure: fit the point spread from M px^2 with a Gaussian prior M ± S px^2 "
+                         "(results/concealed..._exposure..._spread<M>pm<S>/)")
     ap.add_argument("--exposure-fraction", type=float, metavar="F",
                     help="with --exposure: this fraction of the frame interval instead of the recording's own, "
                          "as a user's guess would be (results/concealed..._exposure<F>/)")
@@ -722,6 +728,9 @@ if __name__ == "__main__":
     ap.add_argument("--rules", action="store_true",
                     help="what each test alone kept out over every stored set (results/rules.md)")
     args = ap.parse_args()
+    # the point spread fitted: from 0 without a prior, or from M with the prior M ± S px^2
+    point_spread = ((0.0, math.inf) if args.fit_point_spread
+                    else tuple(args.point_spread_prior) if args.point_spread_prior else None)
     if args.rules:
         text = rules_text(rule_tally())
         (OUT.parent / "rules.md").write_text(text + "\n")
@@ -733,7 +742,7 @@ if __name__ == "__main__":
         if args.albedo_passes is not None or args.exposure:
             suffix = segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction,
                                          args.coverage_near_px, False if args.unclipped else None,
-                                         args.fit_exposure, args.fit_point_spread)
+                                         args.fit_exposure, point_spread)
             against = ("the exposure" if args.exposure_fraction is None
                        else f"an exposure of {args.exposure_fraction:g}")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
@@ -742,7 +751,9 @@ if __name__ == "__main__":
                                  if args.coverage_near_px is not None else [])
                               + (["unclipped"] if args.unclipped else [])
                               + (["the exposure fitted"] if args.fit_exposure else [])
-                              + (["the point spread fitted"] if args.fit_point_spread else []))
+                              + ([] if point_spread is None else
+                                 ["the point spread fitted" + ("" if math.isinf(point_spread[1]) else
+                                                               f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")]))
             text = side_by_side(suffix, label, column="segmentation")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
@@ -778,8 +789,13 @@ if __name__ == "__main__":
                  f"least 1 px, got {args.coverage_near_px}")
     if args.fit_exposure and not args.exposure:
         ap.error("--fit-exposure needs --exposure (the fraction it starts from)")
-    if args.fit_point_spread and not args.exposure:
-        ap.error("--fit-point-spread needs --exposure (the point spread is fitted to the soft coverage)")
+    if (args.fit_point_spread or args.point_spread_prior) and not args.exposure:
+        ap.error("--fit-point-spread and --point-spread-prior need --exposure (the point spread is fitted to the "
+                 "soft coverage)")
+    if args.fit_point_spread and args.point_spread_prior:
+        ap.error("--fit-point-spread fits the point spread without a prior: not with --point-spread-prior")
+    if args.point_spread_prior and not (math.isfinite(args.point_spread_prior[0]) and args.point_spread_prior[1] > 0):
+        ap.error(f"--point-spread-prior needs a finite mean and a positive spread, got {args.point_spread_prior}")
     if args.unclipped and not args.exposure:
         ap.error("--unclipped needs --exposure (only the exposure reads the coverage)")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
@@ -800,4 +816,4 @@ if __name__ == "__main__":
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
          args.read_as, args.exposure, args.exposure_fraction, args.coverage_near_px,
-         False if args.unclipped else None, args.fit_exposure, args.fit_point_spread)
+         False if args.unclipped else None, args.fit_exposure, point_spread)
