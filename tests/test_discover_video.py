@@ -417,7 +417,7 @@ def test_added_effect_starts_from_the_screened_start_nearest_the_data():
     start, screened = video._screen(extended, ("time_scale",), used)
     costs = {}
     for clock in (1.0, 1.01, 0.99):
-        own = dv._Model(extended.cands, {"time_scale": {"time_scale": torch.tensor(clock, dtype=F64)}}, extended.edge)
+        own = dv._Model(extended.cands, {"time_scale": {"time_scale": torch.tensor(clock, dtype=F64)}}, extended.nuisances)
         costs[clock] = video._cost(video._lm(own, used, dv.SCREEN_ITERATIONS)[1])
     assert float(start.values["time_scale"]["time_scale"]) == pytest.approx(min(costs, key=costs.get))
     assert float(screened.values["time_scale"]["time_scale"]) == pytest.approx(1.04, abs=0.005)
@@ -460,7 +460,7 @@ def test_held_out_fit_sees_no_held_out_frame():
     for field in clean.payload["held_model"].cands.fields():
         assert torch.equal(getattr(moved.payload["held_model"].cands, field),
                            getattr(clean.payload["held_model"].cands, field))
-    assert moved.payload["held_model"].edge == clean.payload["held_model"].edge
+    assert moved.payload["held_model"].nuisances == clean.payload["held_model"].nuisances
     assert moved.heldout_rms > clean.heldout_rms  # the moved frames are predicted worse
 
 
@@ -611,7 +611,7 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
             for sign in (1.0, -1.0):
                 values = {n: dict(p) for n, p in extended.values.items()}
                 values[name][pname] = value + sign * dv.EFFECT_SCALES[pname]
-                starts.append(dv._Model(extended.cands, values, extended.edge))
+                starts.append(dv._Model(extended.cands, values, extended.nuisances))
     flights = []
     render = video._fitted_moments
 
@@ -632,7 +632,7 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
             for pname, value in model_b.values[name].items():
                 # within 1e-5 of the parameter's scale (rounding and RK4 grid differences)
                 assert float((model_a.values[name][pname] - value).abs().max()) < 1e-5 * dv.EFFECT_SCALES[pname]
-        assert model_a.edge == pytest.approx(model_b.edge, abs=1e-8)
+        assert model_a.nuisances == pytest.approx(model_b.nuisances, abs=1e-8)
     # drag and offset: 9 starts, a clock's 3, a lens's 5, each batch sharing every flight
     assert batched_flights * 2 < len(flights)
 

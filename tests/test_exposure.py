@@ -156,11 +156,11 @@ def test_fitted_exposure_finds_the_shutter_the_blur_was_drawn_with():
     coverage = torch.as_tensor(raw_moments(cover.numpy()))
     video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.25, 5), coverage=coverage, fit_exposure=True)
     start = _Model(cands, {}, video.start_nuisances())
-    assert start.edge == (0.0, 0.0, 0.25)
+    assert start.nuisances == (0.0, 0.0, 0.25)
     video._set_noise(start)
     everything = video.problem.used.cpu().numpy().astype(bool)
     model, resid, jac = video._lm(start, everything, 15)
-    fraction, std = model.edge[2], video._uncertainty(model, resid, jac)[1][2]
+    fraction, std = model.nuisances[2], video._uncertainty(model, resid, jac)[1][2]
     assert abs(fraction - 0.5) < 0.03 and 0 < std < 0.25, (fraction, std)
     fixed = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.25, 5), coverage=coverage)
     fixed._set_noise(_Model(cands, {}))
@@ -192,12 +192,12 @@ def test_fitted_point_spread_and_exposure_find_what_the_coverage_was_drawn_with(
                             fit_exposure=True, point_spread=(0.0, math.inf))
     assert video.nuisance_names == ("edge", "edge_shape", "point_spread", "exposure")
     start = _Model(cands, {}, video.start_nuisances())
-    assert start.edge == (0.0, 0.0, 0.0, 0.25)
+    assert start.nuisances == (0.0, 0.0, 0.0, 0.25)
     video._set_noise(start)
     everything = video.problem.used.cpu().numpy().astype(bool)
     model, resid, jac = video._lm(start, everything, 15)
     std = video._uncertainty(model, resid, jac)[1]
-    spread, fraction = video.nuisance(model.edge, "point_spread"), video.nuisance(model.edge, "exposure")
+    spread, fraction = video.nuisance(model.nuisances, "point_spread"), video.nuisance(model.nuisances, "exposure")
     assert abs(spread - 1.5) < 0.1 and 0 < std[2] < 1.0, (spread, fraction, std)
     assert abs(fraction - 0.5) < 0.03 and 0 < std[3] < 0.3, (spread, fraction, std)
     with pytest.raises(ValueError, match="point_spread needs"):
@@ -223,12 +223,12 @@ def test_point_spread_prior_holds_the_spread_and_counts_as_an_observation():
         video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.5, 5), coverage=coverage,
                                 point_spread=prior)
         start = _Model(cands, {}, video.start_nuisances())
-        assert start.edge == (0.0, 0.0, prior[0])
+        assert start.nuisances == (0.0, 0.0, prior[0])
         assert video.prior_terms((0.03, -0.06, 2.0)) == pytest.approx(
             (0.03 / EDGE_PRIOR_PX, -0.06 / EDGE_SHAPE_PRIOR_PX, (2.0 - prior[0]) / prior[1]))
         video._set_noise(start)
         model, resid, jac = video._lm(start, everything, 15)
-        found[prior] = video.nuisance(model.edge, "point_spread")
+        found[prior] = video.nuisance(model.nuisances, "point_spread")
         fit = video._score((), model, video._uncertainty(model, resid, jac), model)
         assert fit.n_obs == int(np.isfinite(np.concatenate(list(video.whitened_channels(
             video.residuals(model), video.problem.used.cpu().numpy().astype(bool)).values()))).sum()) + 3

@@ -188,7 +188,7 @@ EDGE_PRIOR_PX = 0.15
 EXPOSURE_SCALE = 0.05
 # Step unit of a fitted point spread (VideoProblem(point_spread=...)), px^2; its prior is the caller's.
 POINT_SPREAD_SCALE = 0.5
-# The nuisances a model can fit, in the order of its edge tuple, and their step units
+# The nuisances a model can fit, in the order of its nuisances tuple, and their step units
 NUISANCE_SCALES = {"edge": EDGE_SCALE, "edge_shape": EDGE_SCALE, "point_spread": POINT_SPREAD_SCALE,
                    "exposure": EXPOSURE_SCALE}
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
@@ -275,9 +275,10 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
     return out
 
 
-def _moments_at(table: Tensor, bias: tuple[float, float]) -> tuple[Tensor, Tensor, Tensor]:
-    """Area (T,), centroid (T, 2), covariance (T, 2, 2) at ``bias = (b0, b1)`` pixels (bilinear in
-    the (K0, K1, T, 6) table of :func:`_edge_moments`)."""
+def _moments_at(table: Tensor, bias: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
+    """Area (T,), centroid (T, 2), covariance (T, 2, 2) at the edge bias ``(b0, b1)`` pixels, the
+    first two of ``bias`` (a model's nuisances; bilinear in the (K0, K1, T, 6) table of
+    :func:`_edge_moments`)."""
     raw = table
     for grid, value in ((_EDGE_GRID, bias[0]), (_EDGE_SHAPE_GRID, bias[1])):
         position = (min(max(value, float(grid[0])), float(grid[-1])) - float(grid[0])) / float(grid[1] - grid[0])
@@ -321,7 +322,7 @@ def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarra
 @dataclass
 class _Model:
     """A fitted model: the candidate (B = 1), its effects' parameter values and the nuisances
-    every model fits, ``edge``: the segmentation edge bias ``(b0, b1)``, pixels the observed
+    every model fits, ``nuisances``: the segmentation edge bias ``(b0, b1)``, pixels the observed
     outline lies outside the true one, ``b0 + b1 e cos(2 phi)`` with ``phi`` the outline normal's
     angle to the major axis and ``e`` the silhouette's elongation (:func:`normal_axis_angle`);
     then, where fitted, the point spread (``VideoProblem(point_spread=...)``, px^2) and
@@ -330,7 +331,7 @@ class _Model:
 
     cands: Candidates
     values: dict  # effect -> {parameter: tensor}
-    edge: tuple[float, ...] = (0.0, 0.0)
+    nuisances: tuple[float, ...] = (0.0, 0.0)
 
 
 @dataclass(eq=False)
@@ -426,7 +427,7 @@ class VideoProblem:
                              f"(infinite: no prior), got {point_spread}")
         self.search_problem = problem
         self.exposure = exposure
-        # the nuisances every model fits, in the order of _Model.edge
+        # the nuisances every model fits, in the order of _Model.nuisances
         self.nuisance_names = (("edge", "edge_shape") + (("point_spread",) if point_spread is not None else ())
                                + (("exposure",) if fit_exposure else ()))
         # each nuisance's start and Gaussian prior (mean, std): the exposure starts at the given
@@ -477,26 +478,26 @@ class VideoProblem:
         return out
 
     def start_nuisances(self) -> tuple[float, ...]:
-        """A baseline's nuisances before its fit (:class:`_Model`'s ``edge``): each at its prior's
+        """A baseline's nuisances before its fit (:class:`_Model`'s ``nuisances``): each at its prior's
         mean (no edge bias, the point spread's mean, the given exposure's fraction)."""
         return tuple(self.priors[name][0] for name in self.nuisance_names)
 
-    def prior_terms(self, edge: tuple[float, ...]) -> tuple[float, ...]:
+    def prior_terms(self, nuisances: tuple[float, ...]) -> tuple[float, ...]:
         """The nuisances' prior terms ``(value - mean) / std`` (standard units), one per nuisance
         with a finite prior (:attr:`priors`), in the order of :attr:`nuisance_names`; each counts
         as one more observation in the criterion."""
         return tuple((value - self.priors[name][0]) / self.priors[name][1]
-                     for value, name in zip(edge, self.nuisance_names) if math.isfinite(self.priors[name][1]))
+                     for value, name in zip(nuisances, self.nuisance_names) if math.isfinite(self.priors[name][1]))
 
-    def nuisance(self, edge: tuple[float, ...], name: str) -> float | None:
-        """The nuisance ``name`` (of ``NUISANCE_SCALES``) in a model's ``edge`` tuple, None where
+    def nuisance(self, nuisances: tuple[float, ...], name: str) -> float | None:
+        """The nuisance ``name`` (of ``NUISANCE_SCALES``) in a model's ``nuisances`` tuple, None where
         this problem does not fit it."""
-        return edge[self.nuisance_names.index(name)] if name in self.nuisance_names else None
+        return nuisances[self.nuisance_names.index(name)] if name in self.nuisance_names else None
 
     def residuals(self, model: _Model) -> dict:
         """Channel name -> (T,) residual (observed minus fitted), NaN outside the used frames."""
         with torch.no_grad():
-            channels = self._channels(model.cands, self.effects(model.values), model.edge)
+            channels = self._channels(model.cands, self.effects(model.values), model.nuisances)
         return {k: v[0].cpu().numpy() for k, v in channels.items()}
 
     def _fitted_moments(self, cands: Candidates, effects: Sequence[Effect],
@@ -511,31 +512,31 @@ class VideoProblem:
         return candidate_moments(self.problem, cands, len(self.problem.times), effects, exposure=self.exposure,
                                  fractions=fractions)
 
-    def _fraction(self, edge: tuple[float, ...]) -> float | None:
+    def _fraction(self, nuisances: tuple[float, ...]) -> float | None:
         """The fitted exposure's fraction in a model's nuisances, None where it is not fitted."""
-        return self.nuisance(edge, "exposure")
+        return self.nuisance(nuisances, "exposure")
 
-    def _spread(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
+    def _spread(self, fitted: tuple[Tensor, Tensor, Tensor], nuisances: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
         """B candidates' fitted moments (:meth:`_fitted_moments`) seen through the fitted point
         spread: its variance (px^2) added to each covariance's diagonal (unchanged where it is not
         fitted)."""
-        spread = self.nuisance(edge, "point_spread")
+        spread = self.nuisance(nuisances, "point_spread")
         if spread is None:
             return fitted
         area, centre, cov = fitted
         return area, centre, cov + spread * torch.eye(2, dtype=cov.dtype, device=cov.device)
 
-    def _channels(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, ...]) -> dict:
+    def _channels(self, cands: Candidates, effects: Sequence[Effect], nuisances: tuple[float, ...]) -> dict:
         """Channel name -> (B, T) residuals of B candidates, NaN outside the used frames; the
         observed outlines moved inward by the edge bias ``(b0, b1)`` (see :class:`_Model`)."""
-        return self._channels_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge)
+        return self._channels_of(self._fitted_moments(cands, effects, self._fraction(nuisances)), nuisances)
 
-    def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...]) -> dict:
+    def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], nuisances: tuple[float, ...]) -> dict:
         """:meth:`_channels` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
-        observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, edge))
+        observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, nuisances))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
-                for k, v in channel_values(observed, self._spread(fitted, edge)).items()}
+                for k, v in channel_values(observed, self._spread(fitted, nuisances)).items()}
 
     def _normalised(self, channels: dict, mask: np.ndarray) -> np.ndarray:
         """(N, C) residuals of the frames in ``mask`` divided by the noise floors."""
@@ -564,16 +565,16 @@ class VideoProblem:
 
     # -- Levenberg-Marquardt on the normalised channels ----------------------------------------
 
-    def _vector(self, cands: Candidates, effects: Sequence[Effect], edge: tuple[float, ...],
+    def _vector(self, cands: Candidates, effects: Sequence[Effect], nuisances: tuple[float, ...],
                 mask: Tensor) -> Tensor:
         """(B, N + Q) whitened residuals of the frames in ``mask`` (channel-major, see
         :meth:`_whitened`), then the Q nuisances' prior terms (:meth:`prior_terms`)."""
-        return self._vector_of(self._fitted_moments(cands, effects, self._fraction(edge)), edge, mask)
+        return self._vector_of(self._fitted_moments(cands, effects, self._fraction(nuisances)), nuisances, mask)
 
-    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], edge: tuple[float, ...], mask: Tensor) -> Tensor:
+    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], nuisances: tuple[float, ...], mask: Tensor) -> Tensor:
         """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
-        channels = self._channels_of(fitted, edge)
-        terms = self.prior_terms(edge)
+        channels = self._channels_of(fitted, nuisances)
+        terms = self.prior_terms(nuisances)
         prior = torch.tensor(terms, dtype=channels[CHANNELS[0]].dtype, device=mask.device).expand(len(fitted[0]),
                                                                                                   len(terms))
         frames = mask.cpu().numpy()
@@ -602,17 +603,17 @@ class VideoProblem:
                 step = extra[offset:offset + value.numel()].view_as(value) * EFFECT_SCALES.get(pname, 0.1)
                 values[name][pname] = value + step.cpu()
                 offset += value.numel()
-        edge = tuple(b + NUISANCE_SCALES[name] * float(step) for b, step, name
-                     in zip(model.edge, extra[offset:offset + len(model.edge)], self.nuisance_names))
-        fraction = self._fraction(edge)
+        nuisances = tuple(b + NUISANCE_SCALES[name] * float(step) for b, step, name
+                     in zip(model.nuisances, extra[offset:offset + len(model.nuisances)], self.nuisance_names))
+        fraction = self._fraction(nuisances)
         if fraction is not None and not 0.0 <= fraction <= 1.0:
             raise ValueError(f"an exposure must be a fraction of the frame interval in [0, 1], got {fraction}")
-        return cands, self.effects(values), edge
+        return cands, self.effects(values), nuisances
 
     def _extra_count(self, model: _Model) -> int:
         """Free parameters besides the 14 of the state: the effects' and the nuisances'
         (:attr:`nuisance_names`)."""
-        return len(model.edge) + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
+        return len(model.nuisances) + sum(torch.as_tensor(v).numel() for params in model.values.values() for v in params.values())
 
     def _free_count(self, model: _Model) -> int:
         """Free parameters the criterion charges: the 14 of the state and the extras, less those of
@@ -661,16 +662,16 @@ class VideoProblem:
             free = torch.nonzero(~self._frozen(model)[:14]).flatten()
             n_extra = self._extra_count(model)  # the effects' parameters, then the nuisances
             values = self._stepped_values(model, 1 + len(free), step)
-            state = torch.zeros(1 + len(free) + n_extra - len(model.edge), 14, dtype=torch.float64)
+            state = torch.zeros(1 + len(free) + n_extra - len(model.nuisances), 14, dtype=torch.float64)
             state[1 + torch.arange(len(free)), free] = step
             zero_extra = torch.zeros(n_extra, dtype=torch.float64)
-            cands, _, edge = self._build(model, state.to(self.problem.masks.device), zero_extra)
-            blocks.append((cands, values, edge))
+            cands, _, nuisances = self._build(model, state.to(self.problem.masks.device), zero_extra)
+            blocks.append((cands, values, nuisances))
             exposure_step = None
-            if self._fraction(model.edge) is not None:  # a fitted exposure's column renders once more
-                exposure_step = step if self._fraction(model.edge) + step * EXPOSURE_SCALE <= 1.0 else -step
+            if self._fraction(model.nuisances) is not None:  # a fitted exposure's column renders once more
+                exposure_step = step if self._fraction(model.nuisances) + step * EXPOSURE_SCALE <= 1.0 else -step
                 shifted = zero_extra.clone()
-                shifted[n_extra - len(model.edge) + self.nuisance_names.index("exposure")] = exposure_step
+                shifted[n_extra - len(model.nuisances) + self.nuisance_names.index("exposure")] = exposure_step
                 one, _, moved = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
                 blocks.append((one, model.values, moved))
             plans.append((free, exposure_step))
@@ -692,7 +693,7 @@ class VideoProblem:
         ``exposure_row``: a fitted exposure's (N,) row rendered with its fraction moved by the
         step given (scaled units; backward where forward would leave [0, 1])."""
         n_extra = self._extra_count(model)
-        n_effect = n_extra - len(model.edge)  # the extras are the effects' parameters, then the nuisances
+        n_effect = n_extra - len(model.nuisances)  # the extras are the effects' parameters, then the nuisances
         zero_state, zero_extra = torch.zeros(1, 14, dtype=torch.float64), torch.zeros(n_extra, dtype=torch.float64)
         base = rows[0]
         jac = base.new_zeros(len(base), 14 + n_extra)
@@ -705,8 +706,8 @@ class VideoProblem:
                 continue
             shifted = zero_extra.clone()
             shifted[n_effect + k] = step
-            _, _, edge = self._build(model, zero_state, shifted)
-            jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, edge, mask)[0] - base) / step
+            _, _, nuisances = self._build(model, zero_state, shifted)
+            jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, nuisances, mask)[0] - base) / step
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
@@ -716,7 +717,7 @@ class VideoProblem:
         Args:
             blocks: per model, its B_k rows' candidates, effect values ``{name: {param: value}}``
                 (each shared, of its null value's shape, or one per row, (B_k,) or (B_k, 3)) and
-                nuisances (:class:`_Model`'s ``edge``).
+                nuisances (:class:`_Model`'s ``nuisances``).
 
         Returns:
             Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + Q)
@@ -733,9 +734,9 @@ class VideoProblem:
                                   for block in blocks])
         fitted = self._fitted_moments(cands, self.effects(values), fraction)
         out, start = [], 0
-        for block_cands, _, edge in blocks:
+        for block_cands, _, nuisances in blocks:
             part = tuple(m[start:start + len(block_cands)] for m in fitted)
-            out.append((part, self._vector_of(part, edge, mask)))
+            out.append((part, self._vector_of(part, nuisances, mask)))
             start += len(block_cands)
         return out
 
@@ -802,19 +803,19 @@ class VideoProblem:
                     delta = -torch.linalg.solve(jtj + run.damping * torch.diag(scale), grad)
                     with torch.no_grad():
                         try:
-                            cands, effects, edge = self._build(run.model, delta[:14][None], delta[14:])
+                            cands, effects, nuisances = self._build(run.model, delta[:14][None], delta[14:])
                         except ValueError:  # the step leaves an effect's domain (e.g. a clock factor <= 0)
                             run.damping *= 4
                             continue
-                    trials.append((run, cands, {e.name: e.values() for e in effects}, edge))
+                    trials.append((run, cands, {e.name: e.values() for e in effects}, nuisances))
                 if trials:
                     with torch.no_grad():
                         evaluated = self._evaluate([trial[1:] for trial in trials], mask_t)
-                    for (run, cands, values, edge), (_, vector) in zip(trials, evaluated):
+                    for (run, cands, values, nuisances), (_, vector) in zip(trials, evaluated):
                         trial_cost = self._cost(vector[0].double())
                         if trial_cost < run.cost:
                             run.model = _Model(cands.rebase(), {name: {k: v.cpu().clone() for k, v in params.items()}
-                                                                for name, params in values.items()}, edge)
+                                                                for name, params in values.items()}, nuisances)
                             run.damping = max(run.damping / 3, 1e-7)
                             run.decrease = (run.cost - trial_cost) / max(run.cost, 1e-12)
                             run.cost = trial_cost
@@ -891,7 +892,7 @@ class VideoProblem:
         held = self._normalised(held_channels, self.held)
         n_free = self._free_count(model)
         # the nuisances' prior terms count as observations
-        priors = self.prior_terms(model.edge)
+        priors = self.prior_terms(model.nuisances)
         rss = float(np.nansum(everything**2)) + sum(p * p for p in priors)
         n_obs = int(np.isfinite(everything).sum()) + len(priors)
         centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
@@ -899,11 +900,11 @@ class VideoProblem:
         return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std[0]), math.sqrt(rss / max(n_obs, 1)),
                         float(np.sqrt(np.nanmean(held**2))),
                         payload={"model": model, "held_model": held_model, "channels": channels,
-                                 "edge_px": {"value": model.edge[0], "std": std[1][0],
-                                             "ends_minus_sides": 2 * model.edge[1],
+                                 "edge_px": {"value": model.nuisances[0], "std": std[1][0],
+                                             "ends_minus_sides": 2 * model.nuisances[1],
                                              "ends_minus_sides_std": 2 * std[1][1], "form": EDGE_FORM},
                                  **{name: (None if name not in self.nuisance_names else
-                                           {"value": self.nuisance(model.edge, name),
+                                           {"value": self.nuisance(model.nuisances, name),
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
                                  "held_channels": held_channels,
@@ -928,7 +929,7 @@ class VideoProblem:
                         moved[index] += sign * EFFECT_SCALES.get(pname, 0.1)
                         values = {n: dict(p) for n, p in model.values.items()}
                         values[name][pname] = moved.view_as(value)
-                        starts.append(_Model(model.cands, values, model.edge))
+                        starts.append(_Model(model.cands, values, model.nuisances))
         best = None
         for start, (screened, resid, _) in zip(starts, self._lm_many(starts, mask, SCREEN_ITERATIONS)):
             cost = self._cost(resid)
@@ -943,7 +944,7 @@ class VideoProblem:
         for name in effects:
             if name not in values:
                 values[name] = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in EFFECTS[name].null_params.items()}
-        return _Model(start.cands.select(torch.zeros(1, dtype=torch.long)), values, start.edge)
+        return _Model(start.cands.select(torch.zeros(1, dtype=torch.long)), values, start.nuisances)
 
     def fit(self, effects: tuple[str, ...], warm: ModelFit | None, searched: FitResult | None = None) -> ModelFit:
         """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction).
@@ -989,12 +990,12 @@ class VideoProblem:
         does that. Outliers are left out of every model's criterion and listed in the report.
         """
         with torch.no_grad():
-            fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.edge))
+            fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.nuisances))
             masks = self.problem.masks.cpu().numpy() > 0.5
             self.edge_table = _edge_moments(masks, fitted[2][0].cpu()).to(self.problem.masks.device)
             if self.coverage_shift is not None:
                 self.edge_table = self.edge_table + self.coverage_shift
-            channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.edge).items()}
+            channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.nuisances).items()}
         used = self.problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
         outliers = np.zeros_like(used)
@@ -1243,8 +1244,8 @@ def _unexplained(video: VideoProblem, final: ModelFit, located_after: dict, time
         model = final.payload["model"]
         with torch.no_grad():
             fitted = video._spread(video._fitted_moments(model.cands, video.effects(model.values),
-                                                         video._fraction(model.edge)), model.edge)
-            observed = _moments_at(video.edge_table, model.edge)
+                                                         video._fraction(model.nuisances)), model.nuisances)
+            observed = _moments_at(video.edge_table, model.nuisances)
         stretch = motion_stretch(observed[2].cpu().numpy(), fitted[1][0].cpu().numpy(),
                                  fitted[2][0].cpu().numpy(), times, used)
         speed = stretch["speed_px_per_frame"][used]

@@ -84,14 +84,14 @@ def clock(folder: Path, starts=(1.0135, 1.02)) -> dict:
     base = video.fit((), None)
     refit = video.fit(("time_scale",), base)
     every = video.problem.used.cpu().numpy().astype(bool)
-    out = {"baseline_rss": base.rss, "baseline_edge": list(base.payload["model"].edge),
+    out = {"baseline_rss": base.rss, "baseline_edge": list(base.payload["model"].nuisances),
            "refit_rss": refit.rss, "refit_clock": refit.params["time_scale"]["time_scale"],
-           "refit_edge": list(refit.payload["model"].edge), "starts": {}}
+           "refit_edge": list(refit.payload["model"].nuisances), "starts": {}}
     for start_clock in starts:
         start = video._extend(base.payload["model"], ("time_scale",))
         start.values["time_scale"]["time_scale"] = torch.tensor(start_clock, dtype=torch.float64)
         model, resid, _ = video._lm(start, every, 30)
-        out["starts"][start_clock] = {"cost": video._cost(resid), "edge": list(model.edge),
+        out["starts"][start_clock] = {"cost": video._cost(resid), "edge": list(model.nuisances),
                                       "clock": float(model.values["time_scale"]["time_scale"])}
     return out
 
@@ -105,7 +105,7 @@ def stall(folder: Path, effect: str) -> dict:
     model, resid, _ = video._lm(base.payload["model"], every, 75)
     refit = video.fit((effect,), base)
     point = refit.payload["model"]
-    _, from_refit, _ = video._lm(dv._Model(point.cands, {}, point.edge), every, 45)
+    _, from_refit, _ = video._lm(dv._Model(point.cands, {}, point.nuisances), every, 45)
     return {"baseline_rss": base.rss, "after_75_more": video._cost(resid), "refit_rss": refit.rss,
             "refit_wald": refit.wald, "from_refit_without_effect": video._cost(from_refit)}
 
@@ -142,7 +142,7 @@ def _effects_one_by_one(video: dv.VideoProblem, model, mask: torch.Tensor, step:
         state = torch.zeros(1 + len(free), 14, dtype=torch.float64)
         state[1 + torch.arange(len(free)), free] = step
         fitted = video._fitted_moments(*video._build(model, state, zero_extra)[:2])
-        rows = video._vector_of(fitted, model.edge, mask)
+        rows = video._vector_of(fitted, model.nuisances, mask)
         jac = rows.new_zeros(rows.shape[1], 14 + n_extra)
         jac[:, free] = ((rows[1:] - rows[0]) / step).T
         for j in range(n_extra):
@@ -258,8 +258,8 @@ def heldout_channels(folder: Path, effect: str) -> dict:
     for label, fit in (("baseline", base), (effect, video.fit((effect,), base))):
         held = fit.payload["held_channels"]
         out[label] = {"heldout_noise_floors": fit.heldout_rms,
-                      "edge_all_frames": [float(x) for x in fit.payload["model"].edge],
-                      "edge_train_frames": [float(x) for x in fit.payload["held_model"].edge],
+                      "edge_all_frames": [float(x) for x in fit.payload["model"].nuisances],
+                      "edge_train_frames": [float(x) for x in fit.payload["held_model"].nuisances],
                       "value_all_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
                                            for p, v in fit.payload["model"].values.get(effect, {}).items()},
                       "value_train_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
@@ -292,8 +292,8 @@ def heldout_swap(folder: Path, effect: str) -> dict:
                       "gain": 1.0 - refit.heldout_rms / base.heldout_rms,
                       "train_value": {p: float(torch.as_tensor(v).reshape(-1)[0])
                                       for p, v in refit.payload["held_model"].values[effect].items()},
-                      "train_edge_px": [float(x) for x in refit.payload["held_model"].edge],
-                      "baseline_train_edge_px": [float(x) for x in base.payload["held_model"].edge]}
+                      "train_edge_px": [float(x) for x in refit.payload["held_model"].nuisances],
+                      "baseline_train_edge_px": [float(x) for x in base.payload["held_model"].nuisances]}
         print(label, json.dumps(out[label]), flush=True)
     return out
 
@@ -750,7 +750,7 @@ def exposure(folder: Path, settings=None, fractions: tuple[float, ...] = EXPOSUR
         used[video.outliers] = False
         rows[f"{fraction:g}"] = {
             "rms": {name: float(np.sqrt(np.nanmean(values[used] ** 2))) for name, values in base.payload["channels"].items()},
-            "chi2_per_obs": base.rss / base.n_obs, "noise": video.noise, "edge_px": list(base.payload["model"].edge)}
+            "chi2_per_obs": base.rss / base.n_obs, "noise": video.noise, "edge_px": list(base.payload["model"].nuisances)}
     return {"true_exposure": own.fraction, "taps": own.taps, "fractions": rows}
 
 

@@ -56,7 +56,7 @@ def main(args: list[str]) -> None:
         model = video.fit((), None, searched=result).payload["model"]
         refined = model.cands.state(video.problem.body)
         print(f"{arg} search {errors(folder, result.state[:1], result.candidates, problem, shape, span)} | "
-              f"LM {errors(folder, refined, model.cands, problem, shape, span)} edge {model.edge[0]:+.3f} "
+              f"LM {errors(folder, refined, model.cands, problem, shape, span)} edge {model.nuisances[0]:+.3f} "
               f"({time.perf_counter() - clock:.0f} s)", flush=True)
 
 
