@@ -723,9 +723,10 @@ def test_report_locates_a_size_mismatch_the_edge_bias_took():
 
 def test_cli_exposure_is_checked_and_recorded(tmp_path):
     """``data.exposure``: a fraction outside [0, 1] or taps of 1 are refused with the key named;
-    a quick run with one compares the soft coverage and records the exposure in discover.json.
-    ``data.fit_exposure``: refused without ``data.exposure`` to start from; with it, each model's
-    fitted fraction is recorded."""
+    a quick run with one compares the soft coverage and records the exposure in discover.json,
+    and by default fits its fraction from there (each model's fitted fraction recorded).
+    ``data.fit_exposure``: false takes the exposure as exact; true is refused without
+    ``data.exposure`` to start from, and so is a value that is not a boolean."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_module
@@ -743,19 +744,22 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
         with pytest.raises(ConfigError, match=f"data.exposure / data.exposure_taps: {message}"):
             run(cfg, tmp_path / "bad")
     with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.5"])
+        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.5", "data.fit_exposure=false"])
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert content["exposure"] == {"fraction": 0.5, "taps": 0}
     assert content["models"][0]["chi2_per_obs"] > 0
     assert content["exposure_fitted"] is None
-    # data.fit_exposure: the fraction fitted from data.exposure, recorded per model; refused without a start
+    # data.fit_exposure: refused without a start, or when not a boolean
+    for bad, message in ((["data.fit_exposure=true"], "data.fit_exposure fits the exposure from a start"),
+                         (["data.exposure=0.3", "data.fit_exposure=sometimes"], "must be true, false or null")):
+        with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+            cfg = compose(config_name="config", overrides=common + bad)
+        with pytest.raises(ConfigError, match=message):
+            run(cfg, tmp_path / "bad_fit")
+    # by default the fraction is fitted from data.exposure and recorded per model
     with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.fit_exposure=true"])
-    with pytest.raises(ConfigError, match="data.fit_exposure fits the exposure from a start"):
-        run(cfg, tmp_path / "no_start")
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.3", "data.fit_exposure=true"])
+        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.3"])
     run(cfg, tmp_path / "fitted")
     fitted = json.loads((tmp_path / "fitted" / "discover.json").read_text())["exposure_fitted"]
     assert len(fitted) >= 1 and all(0 <= f["value"] <= 1 and f["std"] > 0 for f in fitted)

@@ -428,12 +428,15 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if data.fps is not None and not float(data.fps) > 0:
         raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
     exposure = _exposure(data)
-    fit_exposure = data.get("fit_exposure", False)
-    if not isinstance(fit_exposure, bool):
-        raise ConfigError(f"data.fit_exposure must be true or false, got {fit_exposure!r}")
+    fit_exposure = data.get("fit_exposure")
+    if fit_exposure is not None and not isinstance(fit_exposure, bool):
+        raise ConfigError(f"data.fit_exposure must be true, false or null (fitted whenever data.exposure is set), "
+                          f"got {fit_exposure!r}")
     if fit_exposure and exposure is None:
         raise ConfigError("data.fit_exposure fits the exposure from a start: set data.exposure too "
                           "(e.g. data.exposure=0.5)")
+    if fit_exposure is None:  # the default: a given exposure is a start, fitted (experiments/discover/HISTORY.md)
+        fit_exposure = exposure is not None
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
     if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
