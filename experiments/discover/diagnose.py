@@ -17,6 +17,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py blur-estimate SET NAME... [SETTING=V...]  # the exposure read from the blur alone, ~25 s each
     python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~30 s each
     python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
+    python experiments/discover/diagnose.py spread-stall SET NAME... [SETTING=V...]  # the baseline with a point spread (1 ± 1 px², none) and 45 more LM iterations, ~6 min each
     python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape|spread|stretch]  # discover with the exposure on a coverage partly exact, ~8 min each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
@@ -38,6 +39,7 @@ the ``recordings`` extra).
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from dataclasses import replace
@@ -1038,6 +1040,30 @@ def exact_coverage(folder: Path, settings=None, parts: tuple[str, ...] = COVERAG
             "iou_final": out["iou_final"], "report": out["report"]}
 
 
+def spread_stall(folder: Path, settings=None, priors=((1.0, 1.0), (0.0, math.inf)), more: int = 45) -> dict:
+    """Does a fitted point spread leave the baseline short of its minimum? One search, then
+    discover's baseline on the coverage (the recording's exposure, ``concealed.py --exposure``)
+    without a point spread and with each of ``priors`` (``(mean, std)`` px², std infinite: none):
+    its chi-squared per observation, its spread, and both after ``more`` Levenberg-Marquardt
+    iterations from there (the baseline itself stops after 15)."""
+    truth, shape, camera = recording_parts(folder)
+    observation, problem, span = load_problem(folder, shape, camera, False, settings)
+    coverage = torch.as_tensor(observation.coverage_moments[span])
+    searched = search_fit(problem, SearchSettings())
+    rows = {}
+    for prior in (None,) + tuple(priors):
+        video = dv.VideoProblem(problem, exposure=recording_exposure(truth), coverage=coverage, point_spread=prior)
+        base = video.fit((), None, searched)
+        every = video.problem.used.cpu().numpy().astype(bool)
+        model, resid, _ = video._lm(base.payload["model"], every, more)
+        rows["none" if prior is None else f"{prior[0]:g} ± {prior[1]:g}"] = {
+            "chi2_per_obs": base.rss / base.n_obs, "spread": video.nuisance(base.payload["model"].nuisances, "point_spread"),
+            f"chi2_per_obs_after_{more}_more": video._cost(resid) / base.n_obs,
+            f"spread_after_{more}_more": video.nuisance(model.nuisances, "point_spread")}
+        print(folder.name, list(rows)[-1], json.dumps(rows[list(rows)[-1]]), flush=True)
+    return rows
+
+
 def _setting_args(args: list[str]) -> dict:
     """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
     return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
@@ -1093,7 +1119,8 @@ def main(argv: list[str]) -> None:
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
-                "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area}
+                "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
+                "spread-stall": spread_stall}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1103,10 +1130,10 @@ def main(argv: list[str]) -> None:
     parts = [a for a in argv[2:] if a.startswith("parts=")] if command == "exact-coverage" else []
     argv = [a for a in argv if a not in fractions + parts]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
-                          "blur-estimate", "blur-speed", "exact-coverage", "area")
+                          "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
-                                                      "exact-coverage", "area") else {})
+                                                      "exact-coverage", "area", "spread-stall") else {})
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
