@@ -239,3 +239,29 @@ def test_point_spread_prior_holds_the_spread_and_counts_as_an_observation():
     assert len(free.prior_terms((0.0, 0.0, 2.0))) == 2
     with pytest.raises(ValueError, match="point_spread must be .*got \\(1.0, 0.0\\)"):
         dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.5, 5), coverage=coverage, point_spread=(1.0, 0.0))
+
+
+def test_baseline_from_several_search_candidates_keeps_the_lowest_cost():
+    """``VideoProblem(baseline_starts=K)``: the baseline's Levenberg-Marquardt runs from the
+    search's first K candidates side by side and keeps the lowest cost. With the search's
+    "best" a flight spun 5 rad/s off and its second the true one, two iterations from the first
+    alone end at a chi-squared of 8.0, from both at 0.50 (measured). A start count below 1 is
+    refused with its value."""
+    from types import SimpleNamespace
+
+    import torchfit.discover_video as dv
+
+    problem, cands, cover = _blurred_throw()
+    coverage = torch.as_tensor(raw_moments(cover.numpy()))
+    off = Candidates(*(getattr(cands, f).clone() for f in cands.fields()))
+    off.omega[:, 0] += 5.0
+    both = Candidates(*(torch.cat([getattr(off, f), getattr(cands, f)]) for f in cands.fields()))
+    searched = SimpleNamespace(candidates=both)
+    rss = {}
+    for starts in (1, 2):
+        video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.5, 5), coverage=coverage,
+                                iterations=2, baseline_starts=starts)
+        rss[starts] = video.fit((), None, searched).rss
+    assert rss[2] < 0.5 * rss[1], rss
+    with pytest.raises(ValueError, match="baseline_starts must be .*got 0"):
+        dv.VideoProblem(problem, candidates=(), baseline_starts=0)

@@ -393,6 +393,12 @@ class VideoProblem:
             outline takes (that moves area and spread together). Unfitted on the coverage, it
             was taken up by a wrong clock (experiments/discover/HISTORY.md, *A spread the
             outline cannot take*). Needs the exposure (the coverage).
+        baseline_starts: the baseline's Levenberg-Marquardt runs from this many of the search's
+            distinct candidates, best first, side by side, and keeps the one that ends with the
+            lowest cost (1: the search's best alone). The noise floors and the edge table are set
+            from the search's best either way. On fresh-1 control_cylinder the search's second
+            candidate ended at chi2/n 0.60 where its best ended at 0.72
+            (experiments/discover/diagnose.py baseline-starts).
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -407,8 +413,13 @@ class VideoProblem:
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
-                 point_spread: tuple[float, float] | None = None, progress: Callable[[str], None] | None = None):
+                 point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
+                 progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
+        if not (isinstance(baseline_starts, int) and baseline_starts >= 1):
+            raise ValueError(f"baseline_starts must be a whole number of the search's candidates, at least 1, "
+                             f"got {baseline_starts!r}")
+        self.baseline_starts = baseline_starts
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
@@ -955,11 +966,17 @@ class VideoProblem:
         everything = self.problem.used.cpu().numpy().astype(bool)
         if not effects:
             result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
-            best = result.candidates.select(torch.zeros(1, dtype=torch.long))
-            start = _Model(Candidates(*(getattr(best, f).double().to(self.problem.masks.device)
-                                        for f in best.fields())), {}, self.start_nuisances())
-            self._set_noise(start)
-            model, resid, jac = self._lm(start, everything, self.iterations)
+            starts = []
+            for k in range(min(self.baseline_starts, len(result.candidates))):
+                one = result.candidates.select(torch.tensor([k]))
+                starts.append(_Model(Candidates(*(getattr(one, f).double().to(self.problem.masks.device)
+                                                  for f in one.fields())), {}, self.start_nuisances()))
+            self._set_noise(starts[0])
+            ended = self._lm_many(starts, everything, self.iterations)
+            model, resid, jac = min(ended, key=lambda run: self._cost(run[1]))
+            if len(ended) > 1:
+                self.say(f"  baseline from {len(ended)} search candidates: chi2 "
+                         + ", ".join(f"{self._cost(run[1]):.1f}" for run in ended))
             held_model, _, _ = self._lm(model, self.train, self.iterations)
         else:
             new = tuple(name for name in effects if name not in warm.payload["model"].values)
@@ -1111,7 +1128,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
-                   progress: Callable[[str], None] | None = None) -> dict:
+                   baseline_starts: int = 1, progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1134,6 +1151,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         point_spread: ``(mean, std)`` px^2: fit the image's point spread as a nuisance of every
             model, from ``mean`` with that Gaussian prior (``std`` infinite: none; see
             :class:`VideoProblem`).
+        baseline_starts: the baseline's refit from this many of the search's candidates (see
+            :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1148,7 +1167,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         coverage = torch.as_tensor(observation.coverage_moments[span])
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
-                         fit_exposure=fit_exposure, point_spread=point_spread, progress=say)
+                         fit_exposure=fit_exposure, point_spread=point_spread,
+                         baseline_starts=baseline_starts, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1177,6 +1197,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise_edge_px": edge_px,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
+        "baseline_starts": baseline_starts,
         "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if point_spread is not None else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],

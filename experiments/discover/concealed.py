@@ -77,7 +77,8 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
-            fit_exposure: bool = False, point_spread: tuple[float, float] | None = None) -> dict:
+            fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
+            baseline_starts: int = 1) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
@@ -87,7 +88,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction) if exposure else None,
-                          fit_exposure=fit_exposure, point_spread=point_spread)
+                          fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts)
 
 
 def recording_exposure(truth: dict, fraction: float | None = None) -> Exposure:
@@ -625,7 +626,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
          read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
-         point_spread: tuple[float, float] | None = None) -> None:
+         point_spread: tuple[float, float] | None = None, baseline_starts: int = 1) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -640,6 +641,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
                             + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
                                                   coverage_clip, fit_exposure, point_spread)
                             + "".join(f"_with_{name}" for name in extra)
+                            + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
         return print(rebuild(out, recordings))
@@ -660,7 +662,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
                           albedo_passes, read_as or transfer, exposure, exposure_fraction, coverage_near_px,
-                          coverage_clip, fit_exposure, point_spread)
+                          coverage_clip, fit_exposure, point_spread, baseline_starts)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -711,6 +713,9 @@ if __name__ == "__main__":
     ap.add_argument("--point-spread-prior", type=float, nargs=2, metavar=("M", "S"),
                     help="with --exposure: fit the point spread from M px^2 with a Gaussian prior M ± S px^2 "
                          "(results/concealed..._exposure..._spread<M>pm<S>/)")
+    ap.add_argument("--baseline-starts", type=int, default=1, metavar="N",
+                    help="the baseline's refit from the search's first N candidates, the lowest cost kept "
+                         "(VideoProblem(baseline_starts=N); results/concealed..._starts<N>/)")
     ap.add_argument("--exposure-fraction", type=float, metavar="F",
                     help="with --exposure: this fraction of the frame interval instead of the recording's own, "
                          "as a user's guess would be (results/concealed..._exposure<F>/)")
@@ -782,6 +787,8 @@ if __name__ == "__main__":
                                 + verdict_grid())
         (OUT.parent / "scoreboard.md").write_text(board + "\n")
         sys.exit(print(board))
+    if args.baseline_starts < 1:
+        ap.error(f"--baseline-starts needs at least one candidate, got {args.baseline_starts}")
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
     if args.coverage_near_px is not None and not (args.exposure and args.coverage_near_px >= 1):
@@ -816,4 +823,4 @@ if __name__ == "__main__":
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
          args.read_as, args.exposure, args.exposure_fraction, args.coverage_near_px,
-         False if args.unclipped else None, args.fit_exposure, point_spread)
+         False if args.unclipped else None, args.fit_exposure, point_spread, args.baseline_starts)

@@ -18,6 +18,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~30 s each
     python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
     python experiments/discover/diagnose.py spread-stall SET NAME... [SETTING=V...]  # the baseline with a point spread (1 ± 1 px², none) and 45 more LM iterations, ~6 min each
+    python experiments/discover/diagnose.py baseline-starts SET NAME... [SETTING=V...]  # the baseline's LM from each of the search's first 4 candidates, ~3 min each
     python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape|spread|stretch]  # discover with the exposure on a coverage partly exact, ~8 min each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
     python experiments/discover/diagnose.py contrast SET NAME...       # does the outline's contrast flag the bad frames? ~10 s each
@@ -53,7 +54,7 @@ from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
 from torchfit.rotation import quat_to_matrix, rotation_angle
-from torchfit.search import Exposure, SearchSettings, candidate_losses
+from torchfit.search import Candidates, Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
 from torchfit.video import SegmentationSettings
 
@@ -1064,6 +1065,36 @@ def spread_stall(folder: Path, settings=None, priors=((1.0, 1.0), (0.0, math.inf
     return rows
 
 
+def baseline_starts(folder: Path, settings=None, starts: int = 4) -> dict:
+    """Which of the search's distinct candidates does discover's baseline do best from? One
+    search, then the baseline (the coverage against the recording's exposure, as ``concealed.py
+    --exposure``; its noise floors from the search's best, as discover sets them) run by
+    Levenberg-Marquardt from each of the first ``starts`` candidates: per candidate its search
+    loss, its rotation error against the truth at t = 0 and the baseline's chi-squared per
+    observation after discover's 15 iterations."""
+    truth, shape, camera = recording_parts(folder)
+    observation, problem, span = load_problem(folder, shape, camera, False, settings)
+    coverage = torch.as_tensor(observation.coverage_moments[span])
+    searched = search_fit(problem, SearchSettings())
+    video = dv.VideoProblem(problem, exposure=recording_exposure(truth), coverage=coverage)
+    base = video.fit((), None, searched)  # sets the noise floors and the edge table from the best
+    every = video.problem.used.cpu().numpy().astype(bool)
+    count = min(starts, len(searched.candidates))
+    device = video.problem.masks.device
+    models = [dv._Model(Candidates(*(getattr(searched.candidates.select(torch.tensor([k])), f).double().to(device)
+                                     for f in searched.candidates.fields())), {}, video.start_nuisances())
+              for k in range(count)]
+    ended = video._lm_many(models, every, video.iterations)
+    errors = _rotation_errors(searched.candidates, shape, truth)
+    rows = [{"rank": k, "search_loss": float(searched.losses[k]), "rotation_deg": float(errors[k]),
+             "chi2_per_obs": video._cost(resid) / base.n_obs,
+             "rotation_after_deg": float(_rotation_errors(model.cands, shape, truth)[0])}
+            for k, (model, resid, _) in enumerate(ended)]
+    for row in rows:
+        print(folder.name, json.dumps(row), flush=True)
+    return {"baseline_chi2_per_obs": base.rss / base.n_obs, "starts": rows}
+
+
 def _setting_args(args: list[str]) -> dict:
     """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
     return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
@@ -1120,7 +1151,7 @@ def main(argv: list[str]) -> None:
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
-                "spread-stall": spread_stall}
+                "spread-stall": spread_stall, "baseline-starts": baseline_starts}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1130,10 +1161,11 @@ def main(argv: list[str]) -> None:
     parts = [a for a in argv[2:] if a.startswith("parts=")] if command == "exact-coverage" else []
     argv = [a for a in argv if a not in fractions + parts]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
-                          "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall")
+                          "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
-                                                      "exact-coverage", "area", "spread-stall") else {})
+                                                      "exact-coverage", "area", "spread-stall",
+                                                      "baseline-starts") else {})
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
