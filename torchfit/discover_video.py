@@ -388,11 +388,14 @@ class VideoProblem:
         point_spread: ``(mean, std)`` px^2, or None: fit an isotropic variance ``s`` (px^2) added
             to every silhouette's covariance as a nuisance of every model (one more parameter),
             starting at ``mean``, with a Gaussian prior ``(s - mean) / std`` (``std`` infinite:
-            no prior; the prior term counts as one more observation): the camera's point spread, which moves the soft coverage's second moments by ``s``
-            in every direction while keeping its area and centre, and which no shift of the
-            outline takes (that moves area and spread together). Unfitted on the coverage, it
-            was taken up by a wrong clock (experiments/discover/HISTORY.md, *A spread the
-            outline cannot take*). Needs the exposure (the coverage).
+            no prior; the prior term counts as one more observation): the camera's point
+            spread, which moves the soft coverage's second moments by ``s`` in every direction
+            while keeping its area and centre, and which no shift of the outline takes (that
+            moves area and spread together). Unfitted on the coverage, it was taken up by a
+            wrong clock (experiments/discover/HISTORY.md, *A spread the outline cannot take*).
+            Needs the exposure (the coverage). Neither version is recommended yet: without a
+            prior it wandered on non-round shapes, with 1 ± 1 px² it let a lens onto a control
+            (same file, seventeenth session).
         baseline_starts: the baseline's Levenberg-Marquardt runs from this many of the search's
             distinct candidates, best first, side by side, and keeps the one that ends with the
             lowest cost (1: the search's best alone). The noise floors and the edge table are set
