@@ -403,6 +403,13 @@ def test_rule_tally_counts_only_what_one_test_alone_kept_out_of_its_round(tmp_pa
     assert seg["evidence_spread"] == {"right": [], "wrong": []}
     assert all(kept == {"right": [], "wrong": []} for kept in tally["exact"].values())
     assert "| segmented | heldout | 1: first/drag_a: quadratic_drag ΔBIC 23.7 | 0 |" in conc.rules_text(tally)
+    # a variant's runs (its folders' suffix) in place of the default kinds of masks
+    (tmp_path / "concealed_albedo1").mkdir()
+    (tmp_path / "concealed" / "drag_a").rename(tmp_path / "concealed_albedo1" / "drag_a")
+    variant = conc.rule_tally(tmp_path, {"albedo": "_albedo1"})
+    assert list(variant) == ["albedo"]
+    assert variant["albedo"]["heldout"] == {"right": ["first/drag_a: quadratic_drag ΔBIC 23.7"], "wrong": []}
+    assert variant["albedo"]["wald"] == {"right": [], "wrong": []}
 
 
 def test_round_gains_names_each_candidate_by_the_round_it_was_scored_in():

@@ -480,7 +480,7 @@ def candidate_rounds(name: str, root: Path = OUT.parent) -> str:
 RULES = ("unphysical", "evidence_spread", "heldout", "wald")  # the tests besides the ΔBIC threshold
 
 
-def rule_tally(root: Path = OUT.parent) -> dict:
+def rule_tally(root: Path = OUT.parent, masks_kinds: dict | None = None) -> dict:
     """What each test alone kept out, over every stored set: the candidates that pass the ΔBIC
     threshold and fail only that test, and would have changed their round (no candidate passed
     it, or theirs is within the look-alike margin of the winner's ΔBIC or above it).
@@ -488,11 +488,12 @@ def rule_tally(root: Path = OUT.parent) -> dict:
     Returns ``{masks: {rule: {"right": [...], "wrong": [...]}}}``, each entry
     ``"set/recording: effect (after base) ΔBIC x"``; ``right`` when the effect is hidden there.
     From the stored discover.json files (no fitting). Counterfactual for that round only: what
-    later rounds would have done is not known."""
+    later rounds would have done is not known. ``masks_kinds``: ``{label: folder suffix}`` in
+    place of ``MASKS`` (e.g. a variant's segmented runs)."""
     margin = VIDEO_SELECTION.lookalike_margin
     out: dict = {}
     for label, name in SETS.items():
-        for masks, folder in ((kind, name + suffix) for kind, suffix in MASKS.items()):
+        for masks, folder in ((kind, name + suffix) for kind, suffix in (masks_kinds or MASKS).items()):
             tally = out.setdefault(masks, {rule: {"right": [], "wrong": []} for rule in RULES})
             for file in sorted((root / folder).glob("*/discover.json")):
                 content = json.loads(file.read_text())
@@ -736,9 +737,12 @@ if __name__ == "__main__":
     # the point spread fitted: from 0 without a prior, or from M with the prior M ± S px^2
     point_spread = ((0.0, math.inf) if args.fit_point_spread
                     else tuple(args.point_spread_prior) if args.point_spread_prior else None)
-    if args.rules:
-        text = rules_text(rule_tally())
-        (OUT.parent / "rules.md").write_text(text + "\n")
+    if args.rules:  # with --albedo-passes/--exposure...: over that variant's segmented runs
+        variant = (segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction, args.coverage_near_px,
+                                       False if args.unclipped else None, args.fit_exposure, point_spread)
+                   if args.albedo_passes is not None or args.exposure else "")
+        text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
+        (OUT.parent / f"rules{variant}.md").write_text(text + "\n")
         sys.exit(print(text))
     if not (args.edge_px >= 0):
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
