@@ -969,11 +969,7 @@ class VideoProblem:
         everything = self.problem.used.cpu().numpy().astype(bool)
         if not effects:
             result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
-            starts = []
-            for k in range(min(self.baseline_starts, len(result.candidates))):
-                one = result.candidates.select(torch.tensor([k]))
-                starts.append(_Model(Candidates(*(getattr(one, f).double().to(self.problem.masks.device)
-                                                  for f in one.fields())), {}, self.start_nuisances()))
+            starts = self.search_starts(result, self.baseline_starts)
             self._set_noise(starts[0])
             ended = self._lm_many(starts, everything, self.iterations)
             model, resid, jac = min(ended, key=lambda run: self._cost(run[1]))
@@ -995,6 +991,17 @@ class VideoProblem:
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
                  f"{time.perf_counter() - clock:.0f} s")
         return out
+
+    def search_starts(self, result: FitResult, count: int) -> list[_Model]:
+        """The baseline's starts: the first ``count`` of a search's distinct candidates (best
+        first; fewer where it found fewer), in float64 on the problem's device, no effects, the
+        nuisances at their starts (:meth:`start_nuisances`)."""
+        starts = []
+        for k in range(min(count, len(result.candidates))):
+            one = result.candidates.select(torch.tensor([k]))
+            starts.append(_Model(Candidates(*(getattr(one, f).double().to(self.problem.masks.device)
+                                              for f in one.fields())), {}, self.start_nuisances()))
+        return starts
 
     def _set_noise(self, model: _Model, threshold: float = 6.0) -> None:
         """The edge nuisance's table, then noise floors from the baseline's residuals, after

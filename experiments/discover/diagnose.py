@@ -54,7 +54,7 @@ from true_masks import load_problem, problem_of, recording_parts, with_masks
 
 import torchfit.discover_video as dv
 from torchfit.rotation import quat_to_matrix, rotation_angle
-from torchfit.search import Candidates, Exposure, SearchSettings, candidate_losses
+from torchfit.search import Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
 from torchfit.video import SegmentationSettings
 
@@ -1079,12 +1079,7 @@ def baseline_starts(folder: Path, settings=None, starts: int = 4) -> dict:
     video = dv.VideoProblem(problem, exposure=recording_exposure(truth), coverage=coverage)
     base = video.fit((), None, searched)  # sets the noise floors and the edge table from the best
     every = video.problem.used.cpu().numpy().astype(bool)
-    count = min(starts, len(searched.candidates))
-    device = video.problem.masks.device
-    models = [dv._Model(Candidates(*(getattr(searched.candidates.select(torch.tensor([k])), f).double().to(device)
-                                     for f in searched.candidates.fields())), {}, video.start_nuisances())
-              for k in range(count)]
-    ended = video._lm_many(models, every, video.iterations)
+    ended = video._lm_many(video.search_starts(searched, starts), every, video.iterations)
     errors = _rotation_errors(searched.candidates, shape, truth)
     rows = [{"rank": k, "search_loss": float(searched.losses[k]), "rotation_deg": float(errors[k]),
              "chi2_per_obs": video._cost(resid) / base.n_obs,
