@@ -733,6 +733,15 @@ def search(folder: Path, settings=None) -> dict:
 EXPOSURE_GRID = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
+def _searched_coverage(folder: Path, settings=None) -> tuple[dict, object, object, torch.Tensor, object]:
+    """A recording segmented with ``settings``: its truth, shape, problem, the (T, 6) raw moments
+    of its soft coverage over the fitted span, and torchfit's search on it (default settings)."""
+    truth, shape, camera = recording_parts(folder)
+    observation, problem, span = load_problem(folder, shape, camera, False, settings)
+    coverage = torch.as_tensor(observation.coverage_moments[span])
+    return truth, shape, problem, coverage, search_fit(problem, SearchSettings())
+
+
 def exposure(folder: Path, settings=None, fractions: tuple[float, ...] = EXPOSURE_GRID) -> dict:
     """Could the exposure be read from the video? The baseline (one search, then discover's
     refit) with the soft coverage compared with the silhouette averaged over each of
@@ -740,11 +749,8 @@ def exposure(folder: Path, settings=None, fractions: tuple[float, ...] = EXPOSUR
     the RMS of each residual channel over the used frames (outliers left out; px for the
     centroid, relative for the others) and the fit's chi-squared per observation against its own
     noise floors."""
-    truth, shape, camera = recording_parts(folder)
-    observation, problem, span = load_problem(folder, shape, camera, False, settings)
-    coverage = torch.as_tensor(observation.coverage_moments[span])
+    truth, _, problem, coverage, searched = _searched_coverage(folder, settings)
     own = recording_exposure(truth)
-    searched = search_fit(problem, SearchSettings())
     rows = {}
     for fraction in fractions:
         video = dv.VideoProblem(problem, exposure=Exposure(fraction, own.taps), coverage=coverage)
@@ -1047,10 +1053,7 @@ def spread_stall(folder: Path, settings=None, priors=((1.0, 1.0), (0.0, math.inf
     without a point spread and with each of ``priors`` (``(mean, std)`` px², std infinite: none):
     its chi-squared per observation, its spread, and both after ``more`` Levenberg-Marquardt
     iterations from there (the baseline itself stops after 15)."""
-    truth, shape, camera = recording_parts(folder)
-    observation, problem, span = load_problem(folder, shape, camera, False, settings)
-    coverage = torch.as_tensor(observation.coverage_moments[span])
-    searched = search_fit(problem, SearchSettings())
+    truth, _, problem, coverage, searched = _searched_coverage(folder, settings)
     rows = {}
     for prior in (None,) + tuple(priors):
         video = dv.VideoProblem(problem, exposure=recording_exposure(truth), coverage=coverage, point_spread=prior)
@@ -1072,22 +1075,20 @@ def baseline_starts(folder: Path, settings=None, starts: int = 4) -> dict:
     Levenberg-Marquardt from each of the first ``starts`` candidates: per candidate its search
     loss, its rotation error against the truth at t = 0 and the baseline's chi-squared per
     observation after discover's 15 iterations."""
-    truth, shape, camera = recording_parts(folder)
-    observation, problem, span = load_problem(folder, shape, camera, False, settings)
-    coverage = torch.as_tensor(observation.coverage_moments[span])
-    searched = search_fit(problem, SearchSettings())
+    truth, shape, problem, coverage, searched = _searched_coverage(folder, settings)
     video = dv.VideoProblem(problem, exposure=recording_exposure(truth), coverage=coverage)
-    base = video.fit((), None, searched)  # sets the noise floors and the edge table from the best
-    every = video.problem.used.cpu().numpy().astype(bool)
-    ended = video._lm_many(video.search_starts(searched, starts), every, video.iterations)
+    models = video.search_starts(searched, starts)
+    video._set_noise(models[0])  # the noise floors and the edge table from the best, as discover's fit sets them
+    ended = video._lm_many(models, video.problem.used.cpu().numpy().astype(bool), video.iterations)
+    n_obs = int(torch.isfinite(ended[0][1]).sum())  # the residuals and the edge bias's prior terms
     errors = _rotation_errors(searched.candidates, shape, truth)
     rows = [{"rank": k, "search_loss": float(searched.losses[k]), "rotation_deg": float(errors[k]),
-             "chi2_per_obs": video._cost(resid) / base.n_obs,
+             "chi2_per_obs": video._cost(resid) / n_obs,
              "rotation_after_deg": float(_rotation_errors(model.cands, shape, truth)[0])}
             for k, (model, resid, _) in enumerate(ended)]
     for row in rows:
         print(folder.name, json.dumps(row), flush=True)
-    return {"baseline_chi2_per_obs": base.rss / base.n_obs, "starts": rows}
+    return {"baseline_chi2_per_obs": rows[0]["chi2_per_obs"], "starts": rows}
 
 
 def _setting_args(args: list[str]) -> dict:
