@@ -737,10 +737,11 @@ if __name__ == "__main__":
     # the point spread fitted: from 0 without a prior, or from M with the prior M ± S px^2
     point_spread = ((0.0, math.inf) if args.fit_point_spread
                     else tuple(args.point_spread_prior) if args.point_spread_prior else None)
-    if args.rules:  # with --albedo-passes/--exposure...: over that variant's segmented runs
-        variant = (segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction, args.coverage_near_px,
-                                       False if args.unclipped else None, args.fit_exposure, point_spread)
-                   if args.albedo_passes is not None or args.exposure else "")
+    # the segmentation variant's results folder suffix (--albedo-passes, --exposure and their options)
+    variant = (segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction, args.coverage_near_px,
+                                   False if args.unclipped else None, args.fit_exposure, point_spread)
+               if args.albedo_passes is not None or args.exposure else "")
+    if args.rules:  # with a variant: over its segmented runs
         text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
         (OUT.parent / f"rules{variant}.md").write_text(text + "\n")
         sys.exit(print(text))
@@ -748,10 +749,8 @@ if __name__ == "__main__":
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
                             or args.crf is not None or args.albedo_passes is not None or args.exposure):
-        if args.albedo_passes is not None or args.exposure:
-            suffix = segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction,
-                                         args.coverage_near_px, False if args.unclipped else None,
-                                         args.fit_exposure, point_spread)
+        if variant:
+            suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
                        else f"an exposure of {args.exposure_fraction:g}")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
