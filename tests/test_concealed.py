@@ -514,6 +514,9 @@ def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
     assert conc.segmentation_suffix(1, True, None, None, None, False, (0.0, math.inf)) == "_albedo1_exposure_spread"
     assert (conc.segmentation_suffix(1, True, 0.25, None, None, True, (1.0, 0.5))
             == "_albedo1_exposure0.25_fitted_spread1pm0.5")
+    camera = conc.recording_exposure(truth, 0.5, taps=0)  # --exposure-taps 0: as a camera's
+    assert (camera.fraction, camera.taps) == (0.5, 0)
+    assert conc.segmentation_suffix(1, True, 0.5, None, None, True, exposure_taps=0) == "_albedo1_exposure0.5_taps0_fitted"
 
 
 def test_blur_estimates_recover_a_known_exposure():

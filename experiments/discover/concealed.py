@@ -78,7 +78,7 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
-            baseline_starts: int = 1) -> dict:
+            baseline_starts: int = 1, exposure_taps: int | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
@@ -87,34 +87,40 @@ def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: fl
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
-                          exposure=recording_exposure(truth, exposure_fraction) if exposure else None,
+                          exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts)
 
 
-def recording_exposure(truth: dict, fraction: float | None = None) -> Exposure:
+def recording_exposure(truth: dict, fraction: float | None = None, taps: int | None = None) -> Exposure:
     """The exposure a generated recording was rendered with (``truth.json``'s ``render``): its
     sub-frames over ``exposure_frac`` of the frame interval, or none for a sharp recording;
-    ``fraction`` in place of ``exposure_frac`` (a wrong guess of it) when given."""
-    taps = int(truth["render"]["blur_subframes"])
+    ``fraction`` in place of ``exposure_frac`` (a wrong guess of it) and ``taps`` in place of its
+    sub-frames (0: a camera's, as a user who does not know the renderer gives it) when given."""
+    rendered = int(truth["render"]["blur_subframes"])
     if fraction is None:
-        fraction = float(truth["render"]["exposure_frac"]) if taps > 1 else 0.0
-    return Exposure(fraction, taps if taps > 1 else 0)
+        fraction = float(truth["render"]["exposure_frac"]) if rendered > 1 else 0.0
+    if taps is None:
+        taps = rendered if rendered > 1 else 0
+    return Exposure(fraction, taps)
 
 
-def exposure_suffix(fraction: float | None) -> str:
-    """The results folder's suffix of a run with the exposure: the recording's own, or ``fraction``."""
-    return "_exposure" + ("" if fraction is None else f"{fraction:g}")
+def exposure_suffix(fraction: float | None, taps: int | None = None) -> str:
+    """The results folder's suffix of a run with the exposure: the recording's own, or ``fraction``
+    (and ``_taps<T>`` with ``taps`` in place of the recording's sub-frames)."""
+    return "_exposure" + ("" if fraction is None else f"{fraction:g}") + ("" if taps is None else f"_taps{taps}")
 
 
 def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_fraction: float | None,
                         coverage_near_px: int | None, coverage_clip: bool | None = None,
-                        fit_exposure: bool = False, point_spread: tuple[float, float] | None = None) -> str:
+                        fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
+                        exposure_taps: int | None = None) -> str:
     """The results folder's suffix of the albedo pass, the exposure (given or fitted from the
     fraction), a fitted point spread (``_spread`` without a prior, ``_spread<M>pm<S>`` with the
     prior ``M ± S`` px^2), the coverage band and the coverage's clip (empty for each left at its
     default)."""
     return ((f"_albedo{albedo_passes}" if albedo_passes is not None else "")
-            + (exposure_suffix(exposure_fraction) if exposure else "") + ("_fitted" if fit_exposure else "")
+            + (exposure_suffix(exposure_fraction, exposure_taps) if exposure else "")
+            + ("_fitted" if fit_exposure else "")
             + ("" if point_spread is None else "_spread" + ("" if math.isinf(point_spread[1])
                                                             else f"{point_spread[0]:g}pm{point_spread[1]:g}"))
             + (f"_near{coverage_near_px}" if coverage_near_px is not None else "")
@@ -627,7 +633,8 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
          read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
-         point_spread: tuple[float, float] | None = None, baseline_starts: int = 1) -> None:
+         point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
+         exposure_taps: int | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -640,7 +647,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
-                                                  coverage_clip, fit_exposure, point_spread)
+                                                  coverage_clip, fit_exposure, point_spread, exposure_taps)
                             + "".join(f"_with_{name}" for name in extra)
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
@@ -663,7 +670,7 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
         print(f"== {folder.name}", flush=True)
         content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
                           albedo_passes, read_as or transfer, exposure, exposure_fraction, coverage_near_px,
-                          coverage_clip, fit_exposure, point_spread, baseline_starts)
+                          coverage_clip, fit_exposure, point_spread, baseline_starts, exposure_taps)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -720,6 +727,9 @@ if __name__ == "__main__":
     ap.add_argument("--exposure-fraction", type=float, metavar="F",
                     help="with --exposure: this fraction of the frame interval instead of the recording's own, "
                          "as a user's guess would be (results/concealed..._exposure<F>/)")
+    ap.add_argument("--exposure-taps", type=int, metavar="T",
+                    help="with --exposure: the exposure as T sub-frames instead of the recording's own, 0 a "
+                         "camera's, as a user who does not know the renderer gives it (results/concealed..._taps<T>/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -739,7 +749,8 @@ if __name__ == "__main__":
                     else tuple(args.point_spread_prior) if args.point_spread_prior else None)
     # the segmentation variant's results folder suffix (--albedo-passes, --exposure and their options)
     variant = (segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction, args.coverage_near_px,
-                                   False if args.unclipped else None, args.fit_exposure, point_spread)
+                                   False if args.unclipped else None, args.fit_exposure, point_spread,
+                                   args.exposure_taps)
                if args.albedo_passes is not None or args.exposure else "")
     if args.rules:  # with a variant: over its segmented runs
         text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
@@ -752,7 +763,9 @@ if __name__ == "__main__":
         if variant:
             suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
-                       else f"an exposure of {args.exposure_fraction:g}")
+                       else f"an exposure of {args.exposure_fraction:g}") + (
+                "" if args.exposure_taps is None else " as a camera's" if args.exposure_taps == 0
+                else f" in {args.exposure_taps} sub-frames")
             label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
                               + ([f"coverage against {against}"] if args.exposure else [])
                               + ([f"coverage within {args.coverage_near_px} px"]
@@ -810,6 +823,8 @@ if __name__ == "__main__":
         ap.error("--unclipped needs --exposure (only the exposure reads the coverage)")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
         ap.error(f"--exposure-fraction needs --exposure and a fraction in [0, 1], got {args.exposure_fraction}")
+    if args.exposure_taps is not None and not (args.exposure and (args.exposure_taps == 0 or args.exposure_taps >= 2)):
+        ap.error(f"--exposure-taps needs --exposure and 0 (a camera) or at least 2 sub-frames, got {args.exposure_taps}")
     if args.chroma_weight is not None and (args.true_masks or args.shipped or not args.chroma_weight > 0):
         ap.error(f"--chroma-weight needs a positive weight and segmented concealed recordings, got {args.chroma_weight}")
     if args.shutter and (args.fresh or args.shipped or args.chroma_weight is not None):
@@ -826,4 +841,5 @@ if __name__ == "__main__":
     main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
          args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
          args.read_as, args.exposure, args.exposure_fraction, args.coverage_near_px,
-         False if args.unclipped else None, args.fit_exposure, point_spread, args.baseline_starts)
+         False if args.unclipped else None, args.fit_exposure, point_spread, args.baseline_starts,
+         args.exposure_taps)
