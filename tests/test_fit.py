@@ -184,7 +184,8 @@ def test_segmentation_settings_come_from_the_config():
     assert settings.transfer == "bt709" and settings.method == "median"
     default = OmegaConf.load(Path(__file__).parents[1] / "torchfit" / "configs" / "data" / "default.yaml")
     assert _segmentation_settings(default.segmentation).transfer == "auto"  # the curve the file names
-    assert _segmentation_settings(default.segmentation).albedo_passes == 0
+    assert _segmentation_settings(default.segmentation).albedo_passes == 0  # a fit's masks
+    assert _segmentation_settings(default.segmentation, coverage=True).albedo_passes == 1  # with data.exposure
     passes = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "albedo_passes": 1}))
     assert passes.albedo_passes == 1
     with pytest.raises(ConfigError, match="data.segmentation: transfer must be one of"):

@@ -67,12 +67,15 @@ class ConfigError(ValueError):
     """A configuration value that cannot be used; the message names the key."""
 
 
-def _segmentation_settings(node) -> SegmentationSettings:
-    """``data.segmentation`` (method, transfer, albedo_passes) as :class:`SegmentationSettings`."""
+def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:
+    """``data.segmentation`` (method, transfer, albedo_passes) as :class:`SegmentationSettings`;
+    ``albedo_passes: null`` is one pass where discover compares the soft coverage (``coverage``:
+    ``data.exposure`` set, the path measured with it) and none elsewhere."""
+    passes = node.get("albedo_passes")
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
-                                    albedo_passes=int(node.get("albedo_passes", 0)))
-    except ValueError as err:
+                                    albedo_passes=(1 if coverage else 0) if passes is None else int(passes))
+    except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 
 
@@ -80,6 +83,9 @@ def _exposure(data) -> Exposure | None:
     """``data.exposure`` and ``data.exposure_taps`` as an :class:`Exposure` (None when unset)."""
     if data.get("exposure") is None:
         return None
+    if isinstance(data.exposure, bool):  # float() would read true as a whole frame, false as none
+        raise ConfigError(f"data.exposure must be a fraction of the frame interval (exposure time x fps) or null, "
+                          f"got {data.exposure}")
     try:
         return Exposure(float(data.exposure), int(data.get("exposure_taps", 0)))
     except (TypeError, ValueError) as err:
@@ -442,7 +448,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
         raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
                           "does not keep (its masks are undistorted); leave data.exposure out")
-    segmentation = _segmentation_settings(data.segmentation)
+    segmentation = _segmentation_settings(data.segmentation, coverage=exposure is not None)
     observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
                                    start=int(data.start), stop=data.stop,
                                    cache_dir=(out_dir / "cache") if data.cache else None,
