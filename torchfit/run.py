@@ -449,6 +449,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
                           "does not keep (its masks are undistorted); leave data.exposure out")
     segmentation = _segmentation_settings(data.segmentation, coverage=exposure is not None)
+    if segmentation.albedo_passes and data.segmentation.get("albedo_passes") is None:
+        ctx["progress"]("segmentation: one albedo pass, the default with data.exposure (data.segmentation.albedo_passes)")
     observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
                                    start=int(data.start), stop=data.stop,
                                    cache_dir=(out_dir / "cache") if data.cache else None,
