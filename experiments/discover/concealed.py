@@ -73,7 +73,7 @@ CANDIDATES = DEFAULT_CANDIDATES  # inertia left out: see the README
 SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise model's calibration recordings
 
 
-def run_one(folder: Path, out: Path, true_masks: bool = False, chroma_weight: float | None = None,
+def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight: float | None = None,
             candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
@@ -627,7 +627,7 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
     return "\n".join(lines + [f"\n{len(lines) - 2} of {compared} candidates' held-out gains moved by >= {points:g} points"])
 
 
-def main(names: list[str], true_masks: bool = False, shipped: bool = False, fresh: int = 0,
+def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
@@ -668,9 +668,11 @@ def main(names: list[str], true_masks: bool = False, shipped: bool = False, fres
     for folder in folders:
         clock = time.perf_counter()
         print(f"== {folder.name}", flush=True)
-        content = run_one(folder, out / folder.name, true_masks, chroma_weight, CANDIDATES + tuple(extra), edge_px,
-                          albedo_passes, read_as or transfer, exposure, exposure_fraction, coverage_near_px,
-                          coverage_clip, fit_exposure, point_spread, baseline_starts, exposure_taps)
+        content = run_one(folder, out / folder.name, true_masks=true_masks, chroma_weight=chroma_weight,
+                          candidates=CANDIDATES + tuple(extra), edge_px=edge_px, albedo_passes=albedo_passes,
+                          transfer=read_as or transfer, exposure=exposure, exposure_fraction=exposure_fraction,
+                          coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
+                          point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -838,8 +840,10 @@ if __name__ == "__main__":
     if (args.transfer and (args.shutter or args.shipped or args.true_masks)) or (args.read_as and not args.transfer):
         ap.error("--transfer is a segmented concealed set stored through a camera curve (not with --shutter, "
                  "--shipped or --true-masks); --read-as only with --transfer")
-    main(args.names, args.true_masks, args.shipped, args.fresh, args.table, args.compare, args.chroma_weight,
-         args.shutter, tuple(args.extra), args.edge_px, args.sharp, args.crf, args.albedo_passes, args.transfer,
-         args.read_as, args.exposure, args.exposure_fraction, args.coverage_near_px,
-         False if args.unclipped else None, args.fit_exposure, point_spread, args.baseline_starts,
-         args.exposure_taps)
+    main(args.names, true_masks=args.true_masks, shipped=args.shipped, fresh=args.fresh, table_only=args.table,
+         against=args.compare, chroma_weight=args.chroma_weight, shutter=args.shutter, extra=tuple(args.extra),
+         edge_px=args.edge_px, sharp=args.sharp, crf=args.crf, albedo_passes=args.albedo_passes,
+         transfer=args.transfer, read_as=args.read_as, exposure=args.exposure,
+         exposure_fraction=args.exposure_fraction, coverage_near_px=args.coverage_near_px,
+         coverage_clip=False if args.unclipped else None, fit_exposure=args.fit_exposure,
+         point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps)
