@@ -8,7 +8,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
     python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT  # the held-out prediction per channel, ~2 min
-    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT  # the same with the exposure fitted from 0.5 (a camera's), ~3 min
+    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
     python experiments/discover/diagnose.py heldout-swap SET NAME EFFECT  # true masks on the held-out or train frames, ~6 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
@@ -250,20 +250,22 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
     return {"noise_as_is": run(1.0), f"scale_noise_times_{scale_factor}": run(float(scale_factor))}
 
 
-def heldout_channels(folder: Path, effect: str, blurred: bool = False) -> dict:
+def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_exposure: float | None = None) -> dict:
     """Which channel turns a held-out test: discover's baseline and its refit with ``effect``,
     each with its nuisances (the edge bias's two terms, and with ``blurred`` the exposure) and
     effect value fitted on all frames and on the train frames, and its held-out prediction per
     channel in noise floors (RMS and mean over the held-out frames). ``blurred`` (command
     ``heldout-blur``): the coverage against an exposure fitted from 0.5 as a camera's, with the
     albedo pass, as ``concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5
-    --exposure-taps 0 --fit-exposure``."""
+    --exposure-taps 0 --fit-exposure``; with ``held_exposure`` (``heldout-blur ... exposure=F``) the
+    exposure held at F instead, in every fit and held-out fit."""
     from torchfit.residuals import CHANNELS
 
     if blurred:
         _, shape, camera = recording_parts(folder)
         observation, problem, span = load_problem(folder, shape, camera, False, SegmentationSettings(albedo_passes=1))
-        video = dv.VideoProblem(problem, exposure=Exposure(0.5, 0), fit_exposure=True,
+        video = dv.VideoProblem(problem, exposure=Exposure(0.5 if held_exposure is None else held_exposure, 0),
+                                fit_exposure=held_exposure is None,
                                 coverage=torch.as_tensor(observation.coverage_moments[span]))
     else:
         video = _video(folder)
@@ -1156,7 +1158,9 @@ def main(argv: list[str]) -> None:
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
-                "heldout-blur": lambda folder, effect: heldout_channels(folder, effect, blurred=True),
+                "heldout-blur": lambda folder, effect, *held: heldout_channels(
+                    folder, effect, blurred=True,
+                    held_exposure=float(held[0].split("=", 1)[1]) if held else None),
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
@@ -1188,6 +1192,8 @@ def main(argv: list[str]) -> None:
                  f"got {','.join(chosen)}")
     if parts:
         label += "_exact_" + "_".join(chosen)
+    if command == "heldout-blur" and len(argv) > 4:  # exposure=F: held there
+        label += "_" + argv[4].replace("=", "")
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
