@@ -261,15 +261,14 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
     exposure held at F instead, in every fit and held-out fit."""
     from torchfit.residuals import CHANNELS
 
+    searched = None
     if blurred:
-        _, shape, camera = recording_parts(folder)
-        observation, problem, span = load_problem(folder, shape, camera, False, SegmentationSettings(albedo_passes=1))
+        _, _, problem, coverage, searched = _searched_coverage(folder, SegmentationSettings(albedo_passes=1))
         video = dv.VideoProblem(problem, exposure=Exposure(0.5 if held_exposure is None else held_exposure, 0),
-                                fit_exposure=held_exposure is None,
-                                coverage=torch.as_tensor(observation.coverage_moments[span]))
+                                fit_exposure=held_exposure is None, coverage=coverage)
     else:
         video = _video(folder)
-    base = video.fit((), None)
+    base = video.fit((), None, searched)
     out = {}
     for label, fit in (("baseline", base), (effect, video.fit((effect,), base))):
         held = fit.payload["held_channels"]
@@ -1158,9 +1157,7 @@ def main(argv: list[str]) -> None:
         return
     commands = {"segmentation": segmentation, "clock": clock, "stall": stall, "jacobian": jacobian,
                 "coverage": coverage, "heldout": heldout, "heldout-channels": heldout_channels,
-                "heldout-blur": lambda folder, effect, *held: heldout_channels(
-                    folder, effect, blurred=True,
-                    held_exposure=float(held[0].split("=", 1)[1]) if held else None),
+                "heldout-blur": lambda folder, effect, **held: heldout_channels(folder, effect, blurred=True, **held),
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
@@ -1172,7 +1169,9 @@ def main(argv: list[str]) -> None:
     fractions = [a for a in argv[2:] if a.startswith("fractions=")] if command == "exposure" else []
     # exact-coverage: parts=P1,P2 of COVERAGE_PARTS (default all)
     parts = [a for a in argv[2:] if a.startswith("parts=")] if command == "exact-coverage" else []
-    argv = [a for a in argv if a not in fractions + parts]
+    # heldout-blur: exposure=F, the exposure held at F instead of fitted
+    held = [a for a in argv[2:] if a.startswith("exposure=")] if command == "heldout-blur" else []
+    argv = [a for a in argv if a not in fractions + parts + held]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
@@ -1192,8 +1191,8 @@ def main(argv: list[str]) -> None:
                  f"got {','.join(chosen)}")
     if parts:
         label += "_exact_" + "_".join(chosen)
-    if command == "heldout-blur" and len(argv) > 4:  # exposure=F: held there
-        label += "_" + argv[4].replace("=", "")
+    if held:
+        label += "_" + held[-1].replace("=", "")
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
@@ -1202,6 +1201,8 @@ def main(argv: list[str]) -> None:
             extra["fractions"] = grid
         if parts:
             extra["parts"] = chosen
+        if held:
+            extra["held_exposure"] = float(held[-1].split("=", 1)[1])
         result = commands[command](folder / name, *([] if several else argv[3:]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
