@@ -419,10 +419,6 @@ class VideoProblem:
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
-        if not (isinstance(baseline_starts, int) and baseline_starts >= 1):
-            raise ValueError(f"baseline_starts must be a whole number of the search's candidates, at least 1, "
-                             f"got {baseline_starts!r}")
-        self.baseline_starts = baseline_starts
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
@@ -439,6 +435,10 @@ class VideoProblem:
                                              and point_spread[1] > 0):
             raise ValueError(f"point_spread must be (mean, std) px^2 with a finite mean and a positive std "
                              f"(infinite: no prior), got {point_spread}")
+        if not (isinstance(baseline_starts, int) and baseline_starts >= 1):
+            raise ValueError(f"baseline_starts must be a whole number of the search's candidates, at least 1, "
+                             f"got {baseline_starts!r}")
+        self.baseline_starts = baseline_starts
         self.search_problem = problem
         self.exposure = exposure
         # the nuisances every model fits, in the order of _Model.nuisances
