@@ -67,6 +67,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 KINDS = ("auto", "video", "images", "masks")
 BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
+COVERAGE_BANDS = ("steps", "motion")
 _CACHE_VERSION = 5
 
 
@@ -113,6 +114,12 @@ class SegmentationSettings:
             of 6 reads the blur nearly right but let discover name a wrong clock on a concealed
             ball, so 4 stays (experiments/discover/HISTORY.md, *Reading the exposure from the
             blur*).
+        coverage_band: ``"steps"``: the moments count the band of ``coverage_near_px`` steps;
+            ``"motion"``: that band swept half the frame's travel either way along the motion
+            (:func:`motion_band`; the travel is the mask centroid's, central differences over
+            the frames), so a fast blur's ramp is kept whole along the motion while the band
+            across it stays as narrow as with ``"steps"`` (experiments/discover/HISTORY.md,
+            *Nineteenth session*).
         coverage_clip: clip the coverage to [0, 1] before its moments are taken. The clip turns
             the zero-mean noise of every background pixel in the band into mass, so the moments
             grow with the band; unclipped they stop growing once the band holds the blurred
@@ -137,6 +144,7 @@ class SegmentationSettings:
     transfer: str = "auto"
     albedo_passes: int = 0
     coverage_near_px: int = 4
+    coverage_band: str = "steps"
     coverage_clip: bool = True
     morph_radius: int = 1
     min_area: int = 6
@@ -160,6 +168,8 @@ class SegmentationSettings:
             raise ValueError(f"area_jump must be > 1, got {self.area_jump!r}")
         if self.albedo_passes < 0:
             raise ValueError(f"albedo_passes must be >= 0, got {self.albedo_passes!r}")
+        if self.coverage_band not in COVERAGE_BANDS:
+            raise ValueError(f"coverage_band must be one of {COVERAGE_BANDS}, got {self.coverage_band!r}")
         if self.coverage_near_px < 1:
             raise ValueError(f"coverage_near_px must be >= 1, got {self.coverage_near_px!r}")
         if self.min_area < 1 or self.morph_radius < 0 or self.max_background_frames < 1:
@@ -746,6 +756,23 @@ def _albedo(colours: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
     return albedo / np.linalg.norm(albedo)
 
 
+def motion_band(mask: np.ndarray, steps: int, velocity: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels within ``steps`` 4-neighbour steps of an (H, W) bool ``mask``, that
+    band then swept half the frame's travel either way along it (``velocity``, (2,) ``(du, dv)``
+    px per frame): as far along the motion as the blur of any exposure up to the whole frame
+    interval reaches (a moving edge's ramp ends half the exposure's travel past its mid-exposure
+    position), and no wider across it."""
+    band = ndimage.binary_dilation(mask, iterations=steps)
+    half = 0.5 * np.asarray(velocity, np.float64)
+    reach = int(math.ceil(np.abs(half).max())) if np.all(np.isfinite(half)) else 0
+    if reach == 0:
+        return band
+    kernel = np.zeros((2 * reach + 1, 2 * reach + 1), np.uint8)
+    ends = [(int(round(reach + sign * half[0])), int(round(reach + sign * half[1]))) for sign in (-1, 1)]
+    cv2.line(kernel, ends[0], ends[1], 1)
+    return cv2.dilate(band.astype(np.uint8), kernel).astype(bool)
+
+
 def raw_moments(images: np.ndarray) -> np.ndarray:
     """(T, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` of (T, H, W) non-negative images
     about the image origin, ``u`` the column and ``v`` the row index (float64)."""
@@ -818,11 +845,17 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
             coverage = cv2.GaussianBlur(coverage.astype(np.float32), (0, 0), settings.alpha_smoothing)
         masks[t] = (coverage >= settings.alpha_threshold) & region[t]
     masks = _morph(masks, "closing", settings.morph_radius)
-    cover_moments = np.zeros((len(frames), 6))
     for t in range(len(frames)):
         if masks[t].any():
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
-            near = ndimage.binary_dilation(masks[t], iterations=settings.coverage_near_px)
+    velocity = np.zeros((len(frames), 2))  # px per frame, the final masks' centroids
+    if settings.coverage_band == "motion":
+        centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
+        velocity = np.gradient(centre, axis=0) if len(frames) > 1 else velocity
+    cover_moments = np.zeros((len(frames), 6))
+    for t in range(len(frames)):
+        if masks[t].any():
+            near = motion_band(masks[t], settings.coverage_near_px, velocity[t])
             cover = np.clip(covers[t], 0.0, 1.0) if settings.coverage_clip else covers[t]
             cover_moments[t] = raw_moments((cover * near)[None])[0]
     return {"masks": masks, "background": background_bgr, "second_frac": second_frac,

@@ -8,7 +8,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
     python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT  # the held-out prediction per channel, ~2 min
-    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
+    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F] [SETTING=V...]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
     python experiments/discover/diagnose.py heldout-swap SET NAME EFFECT  # true masks on the held-out or train frames, ~6 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
@@ -250,7 +250,8 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
     return {"noise_as_is": run(1.0), f"scale_noise_times_{scale_factor}": run(float(scale_factor))}
 
 
-def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_exposure: float | None = None) -> dict:
+def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_exposure: float | None = None,
+                     settings: SegmentationSettings | None = None) -> dict:
     """Which channel turns a held-out test: discover's baseline and its refit with ``effect``,
     each with its nuisances (the edge bias's two terms, and with ``blurred`` the exposure) and
     effect value fitted on all frames and on the train frames, and its held-out prediction per
@@ -258,12 +259,15 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
     ``heldout-blur``): the coverage against an exposure fitted from 0.5 as a camera's, with the
     albedo pass, as ``concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5
     --exposure-taps 0 --fit-exposure``; with ``held_exposure`` (``heldout-blur ... exposure=F``) the
-    exposure held at F instead, in every fit and held-out fit."""
+    exposure held at F instead, in every fit and held-out fit; ``settings`` (``SETTING=V``, e.g.
+    ``coverage_band=motion coverage_clip=false``) the blurred path's segmentation, its albedo pass
+    kept unless one of them sets ``albedo_passes``."""
     from torchfit.residuals import CHANNELS
 
     searched = None
     if blurred:
-        _, _, problem, coverage, searched = _searched_coverage(folder, SegmentationSettings(albedo_passes=1))
+        settings = settings or SegmentationSettings(albedo_passes=1)
+        _, _, problem, coverage, searched = _searched_coverage(folder, settings)
         video = dv.VideoProblem(problem, exposure=Exposure(0.5 if held_exposure is None else held_exposure, 0),
                                 fit_exposure=held_exposure is None, coverage=coverage)
     else:
@@ -903,19 +907,26 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
 
 
 SPEED_BANDS = (("steps", 4), ("steps", 6), ("steps", 8), ("px", 4), ("px", 6), ("px", 8), ("px", 12),
-               ("px past half the travel", 2), ("px past half the travel", 3))  # blur-speed
+               ("px past half the travel", 2), ("px past half the travel", 3),
+               ("steps and half the travel along it", 4))  # blur-speed
 
 
-def _band(mask: np.ndarray, kind: str, width: int, travel: float = 0.0) -> np.ndarray:
+def _band(mask: np.ndarray, kind: str, width: int, velocity: np.ndarray = np.zeros(2)) -> np.ndarray:
     """(H, W) bool: the pixels within ``width`` of ``mask`` ((H, W) bool), counted in 4-neighbour
-    ``steps`` (as the segmentation's ``coverage_near_px``), in Euclidean ``px``, or in Euclidean
-    ``px past half the travel``: ``width`` px beyond half the frame's ``travel`` (px per frame),
-    as far as the blur of any exposure up to the whole frame interval reaches."""
+    ``steps`` (as the segmentation's ``coverage_near_px``), in Euclidean ``px``, in Euclidean
+    ``px past half the travel``: ``width`` px beyond half the frame's travel (the norm of
+    ``velocity``, (2,) px per frame), as far as the blur of any exposure up to the whole frame
+    interval reaches, or ``steps and half the travel along it``: the band of ``width`` steps swept
+    half the travel either way along the motion (:func:`torchfit.video.motion_band`)."""
     from scipy import ndimage
+
+    from torchfit.video import motion_band
 
     if kind == "steps":
         return ndimage.binary_dilation(mask, iterations=width)
-    reach = width + (travel / 2 if kind == "px past half the travel" else 0.0)
+    if kind == "steps and half the travel along it":
+        return motion_band(mask, width, velocity)
+    reach = width + (float(np.linalg.norm(velocity)) / 2 if kind == "px past half the travel" else 0.0)
     return ndimage.distance_transform_edt(~mask) <= reach
 
 
@@ -955,7 +966,7 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
            "speed_px_per_frame": [float(speed[which == b].mean()) for b in range(bins)],
            "half_blur_px": [float(own.fraction * speed[which == b].mean() / 2) for b in range(bins)], "bands": {}}
     design = np.stack((np.ones_like(speed), speed**2), 1)
-    travel = np.nan_to_num(np.linalg.norm(_mask_velocity(masks), axis=1))  # (T,) px per frame, the video's
+    travel = np.nan_to_num(_mask_velocity(masks))  # (T, 2) px per frame, the video's
     for clip in (True, False):
         for kind, width in SPEED_BANDS:
             raw = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * _band(m, kind, width, v)
@@ -1104,9 +1115,27 @@ def baseline_starts(folder: Path, settings=None, starts: int = 4) -> dict:
     return {"baseline_chi2_per_obs": rows[0]["chi2_per_obs"], "starts": rows}
 
 
+def _setting_value(text: str):
+    """A ``SETTING=V`` argument's value: an integer, a number, true / false, or the word itself."""
+    if text.lstrip("-").isdigit():
+        return int(text)
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
 def _setting_args(args: list[str]) -> dict:
-    """The ``SETTING=V`` arguments among ``args`` as segmentation settings (integers where V is one)."""
-    return {k: (int(v) if v.lstrip("-").isdigit() else float(v)) for k, v in (a.split("=") for a in args if "=" in a)}
+    """The ``SETTING=V`` arguments among ``args`` as segmentation settings (:func:`_setting_value`)."""
+    return {k: _setting_value(v) for k, v in (a.split("=") for a in args if "=" in a)}
+
+
+def _setting_label(changes: dict) -> str:
+    """A results file name's part for segmentation settings: ``_<name><value>`` each."""
+    return "".join(f"_{k}{v:g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else f"_{k}{v}"
+                   for k, v in changes.items())
 
 
 def main(argv: list[str]) -> None:
@@ -1177,11 +1206,13 @@ def main(argv: list[str]) -> None:
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
-                                                      "baseline-starts") else {})
+                                                      "baseline-starts", "heldout-blur") else {})
+    if command == "heldout-blur" and changes:  # the blurred path's albedo pass, unless set
+        changes = {"albedo_passes": 1} | changes
     if command == "search" and not changes:
         sys.exit("diagnose.py search needs the changed segmentation's settings, e.g. albedo_passes=1")
     names = [a for a in argv[2:] if "=" not in a] if several else argv[2:3]
-    label = "".join(f"_{k}{v:g}" for k, v in changes.items())
+    label = _setting_label(changes)
     if fractions:
         grid = tuple(float(f) for f in fractions[-1].split("=", 1)[1].split(","))
         label += "_fractions" + "_".join(f"{f:g}" for f in grid)
@@ -1203,7 +1234,7 @@ def main(argv: list[str]) -> None:
             extra["parts"] = chosen
         if held:
             extra["held_exposure"] = float(held[-1].split("=", 1)[1])
-        result = commands[command](folder / name, *([] if several else argv[3:]), **extra)
+        result = commands[command](folder / name, *([] if several else [a for a in argv[3:] if "=" not in a]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
         (HERE / "results" / f"diagnose_{command}_{argv[1]}_{name}{label}.json").write_text(
