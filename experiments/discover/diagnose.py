@@ -19,6 +19,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~30 s each
     python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
     python experiments/discover/diagnose.py spread-stall SET NAME... [SETTING=V...]  # the baseline with a point spread (1 ± 1 px², none) and 45 more LM iterations, ~6 min each
+    python experiments/discover/diagnose.py shape-frames SET NAME... [SETTING=V...]  # the coverage's area and variance excess per frame against the exact exposure average, ~20 s each
     python experiments/discover/diagnose.py baseline-starts SET NAME... [SETTING=V...]  # the baseline's LM from each of the search's first 4 candidates, ~3 min each
     python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape|spread|stretch]  # discover with the exposure on a coverage partly exact, ~8 min each
     python experiments/discover/diagnose.py stretch SET NAME...        # the masks' stretch along the motion against the speed, ~10 s each
@@ -983,6 +984,30 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
     return out
 
 
+def shape_frames(folder: Path, settings=None) -> dict:
+    """Frame by frame, the soft coverage (``settings``) against the true silhouette's exact
+    exposure average (:func:`_exact_moments`): the mask centroid's speed (px per frame), the
+    area ratio and the variance's excess along and across the motion (px^2)."""
+    from torchfit.losses import central_moments
+
+    truth, shape, camera = recording_parts(folder)
+    observation, _, _ = load_problem(folder, shape, camera, False, settings)
+    _, averaged = _exact_moments(truth, shape, camera)
+    area_o, _, cov_o = central_moments(torch.as_tensor(observation.coverage_moments))
+    area_e, _, cov_e = central_moments(averaged)
+    velocity = np.nan_to_num(_mask_velocity(observation.masks))
+    rows = []
+    for t in np.flatnonzero(area_o.numpy() > 0):
+        speed = float(np.linalg.norm(velocity[t]))
+        along = velocity[t] / max(speed, 1e-9)
+        across = np.array([-along[1], along[0]])
+        extra = (cov_o[t] - cov_e[t]).numpy()
+        rows.append({"frame": int(t), "speed_px": speed, "area_ratio": float(area_o[t] / area_e[t]),
+                     "along_px2": float(along @ extra @ along), "across_px2": float(across @ extra @ across)})
+        print(" ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in rows[-1].items()), flush=True)
+    return {"frames": rows}
+
+
 AREA_BANDS = (2, 4, 6, 8, 12)  # area: the bands the coverage is counted within
 LOW_CONTRAST = 50.0  # area: grey levels of object minus background below which a frame counts as low-contrast
 
@@ -1190,7 +1215,8 @@ def main(argv: list[str]) -> None:
                 "heldout-swap": heldout_swap, "blur": blur, "stretch": stretch,
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
-                "spread-stall": spread_stall, "baseline-starts": baseline_starts}
+                "spread-stall": spread_stall, "baseline-starts": baseline_starts,
+                "shape-frames": shape_frames}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1202,11 +1228,12 @@ def main(argv: list[str]) -> None:
     held = [a for a in argv[2:] if a.startswith("exposure=")] if command == "heldout-blur" else []
     argv = [a for a in argv if a not in fractions + parts + held]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
-                          "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts")
+                          "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
+                          "shape-frames")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
-                                                      "baseline-starts", "heldout-blur") else {})
+                                                      "baseline-starts", "heldout-blur", "shape-frames") else {})
     if command == "heldout-blur" and changes:  # the blurred path's albedo pass, unless set
         changes = {"albedo_passes": 1} | changes
     if command == "search" and not changes:
