@@ -584,8 +584,9 @@ def test_mixed_moments_take_each_part_from_its_source():
 
 def test_blur_speed_bands_reach_as_far_as_named():
     """``diagnose.py blur-speed``'s bands around a one-pixel mask: 4-neighbour steps reach a
-    diamond, Euclidean px a disc, and px past half the travel a disc wider by half the frame's
-    travel (as far as any exposure's blur reaches)."""
+    diamond, Euclidean px a disc, px past half the travel a disc wider by half the frame's
+    travel (as far as any exposure's blur reaches), and the steps swept along the motion the
+    diamond stretched by half the travel either way along it and no wider across it."""
     sys.path.insert(0, str(CONCEALED.parent))
     diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
     mask = np.zeros((21, 21), bool)
@@ -593,5 +594,7 @@ def test_blur_speed_bands_reach_as_far_as_named():
     steps, disc = diag._band(mask, "steps", 3), diag._band(mask, "px", 3)
     assert steps[10, 13] and not steps[12, 12] and disc[12, 12] and not disc[10, 14]
     assert steps.sum() == 25 and disc.sum() == 29
-    wide = diag._band(mask, "px past half the travel", 2, travel=4.0)
+    wide = diag._band(mask, "px past half the travel", 2, velocity=np.array([0.0, 4.0]))
     assert np.array_equal(wide, diag._band(mask, "px", 4))
+    swept = diag._band(mask, "steps and half the travel along it", 3, velocity=np.array([4.0, 0.0]))
+    assert swept.sum() == 25 + 4 * 7 and swept[10, 15] and not swept[10, 16] and not swept[14, 10]

@@ -78,11 +78,13 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
-            baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None) -> dict:
+            baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
+            shading_fit: str | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
-                                 ("coverage_clip", coverage_clip), ("coverage_band", coverage_band)) if v is not None}
+                                 ("coverage_clip", coverage_clip), ("coverage_band", coverage_band),
+                                 ("shading_fit", shading_fit)) if v is not None}
     settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
@@ -113,11 +115,13 @@ def exposure_suffix(fraction: float | None, taps: int | None = None) -> str:
 def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_fraction: float | None,
                         coverage_near_px: int | None, coverage_clip: bool | None = None,
                         fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
-                        exposure_taps: int | None = None, coverage_band: str | None = None) -> str:
+                        exposure_taps: int | None = None, coverage_band: str | None = None,
+                        shading_fit: str | None = None) -> str:
     """The results folder's suffix of the albedo pass, the exposure (given or fitted from the
     fraction), a fitted point spread (``_spread`` without a prior, ``_spread<M>pm<S>`` with the
-    prior ``M ± S`` px^2), the coverage band, its sweep along the motion (``_motionband``) and the
-    coverage's clip (empty for each left at its default)."""
+    prior ``M ± S`` px^2), the coverage band, its sweep along the motion (``_motionband``), the
+    coverage's clip and the local-linear shading (``_linshade``) (empty for each left at its
+    default)."""
     return ((f"_albedo{albedo_passes}" if albedo_passes is not None else "")
             + (exposure_suffix(exposure_fraction, exposure_taps) if exposure else "")
             + ("_fitted" if fit_exposure else "")
@@ -125,7 +129,8 @@ def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_frac
                                                             else f"{point_spread[0]:g}pm{point_spread[1]:g}"))
             + (f"_near{coverage_near_px}" if coverage_near_px is not None else "")
             + ("_motionband" if coverage_band == "motion" else "")
-            + ("_unclipped" if coverage_clip is False else ""))
+            + ("_unclipped" if coverage_clip is False else "")
+            + ("_linshade" if shading_fit == "linear" else ""))
 
 
 def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
@@ -635,7 +640,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
-         exposure_taps: int | None = None, coverage_band: str | None = None) -> None:
+         exposure_taps: int | None = None, coverage_band: str | None = None,
+         shading_fit: str | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -649,7 +655,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
                             + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
                                                   coverage_clip, fit_exposure, point_spread, exposure_taps,
-                                                  coverage_band)
+                                                  coverage_band, shading_fit)
                             + "".join(f"_with_{name}" for name in extra)
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
@@ -675,7 +681,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           transfer=read_as or transfer, exposure=exposure, exposure_fraction=exposure_fraction,
                           coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
-                          coverage_band=coverage_band)
+                          coverage_band=coverage_band, shading_fit=shading_fit)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -720,6 +726,9 @@ if __name__ == "__main__":
     ap.add_argument("--motion-band", action="store_true",
                     help="with --exposure: the coverage's band swept half the frame's travel along the motion "
                          "(SegmentationSettings.coverage_band='motion'; results/concealed..._motionband/)")
+    ap.add_argument("--linear-shading", action="store_true",
+                    help="with --exposure: segment with the local-linear shading "
+                         "(SegmentationSettings.shading_fit='linear'; results/concealed..._linshade/)")
     ap.add_argument("--fit-exposure", action="store_true",
                     help="with --exposure: fit the exposure's fraction as a nuisance of every model, from the "
                          "recording's own or --exposure-fraction (results/concealed..._exposure..._fitted/)")
@@ -758,7 +767,8 @@ if __name__ == "__main__":
     # the segmentation variant's results folder suffix (--albedo-passes, --exposure and their options)
     variant = (segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction, args.coverage_near_px,
                                    False if args.unclipped else None, args.fit_exposure, point_spread,
-                                   args.exposure_taps, "motion" if args.motion_band else None)
+                                   args.exposure_taps, "motion" if args.motion_band else None,
+                                   "linear" if args.linear_shading else None)
                if args.albedo_passes is not None or args.exposure else "")
     if args.rules:  # with a variant: over its segmented runs
         text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
@@ -780,6 +790,7 @@ if __name__ == "__main__":
                                  if args.coverage_near_px is not None else [])
                               + (["swept along the motion"] if args.motion_band else [])
                               + (["unclipped"] if args.unclipped else [])
+                              + (["local-linear shading"] if args.linear_shading else [])
                               + (["the exposure fitted"] if args.fit_exposure else [])
                               + ([] if point_spread is None else
                                  ["the point spread fitted" + ("" if math.isinf(point_spread[1]) else
@@ -828,8 +839,8 @@ if __name__ == "__main__":
         ap.error("--fit-point-spread fits the point spread without a prior: not with --point-spread-prior")
     if args.point_spread_prior and not (math.isfinite(args.point_spread_prior[0]) and args.point_spread_prior[1] > 0):
         ap.error(f"--point-spread-prior needs a finite mean and a positive spread, got {args.point_spread_prior}")
-    if (args.unclipped or args.motion_band) and not args.exposure:
-        ap.error("--unclipped and --motion-band need --exposure (only the exposure reads the coverage)")
+    if (args.unclipped or args.motion_band or args.linear_shading) and not args.exposure:
+        ap.error("--unclipped, --motion-band and --linear-shading need --exposure (the options of the coverage's path)")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
         ap.error(f"--exposure-fraction needs --exposure and a fraction in [0, 1], got {args.exposure_fraction}")
     if args.exposure_taps is not None and not (args.exposure and (args.exposure_taps == 0 or args.exposure_taps >= 2)):
@@ -854,4 +865,4 @@ if __name__ == "__main__":
          exposure_fraction=args.exposure_fraction, coverage_near_px=args.coverage_near_px,
          coverage_clip=False if args.unclipped else None, fit_exposure=args.fit_exposure,
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
-         coverage_band="motion" if args.motion_band else None)
+         coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None)

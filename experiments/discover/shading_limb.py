@@ -6,7 +6,8 @@ from the camera (``LIMB`` of its centre's brightness at the limb), blurred by a 
 (a frame's travel of at least 10 px), without noise or codec, segmented with the albedo pass.
 Printed: the soft coverage's area over the exact coverage's, and the excess of its variance along
 and across the motion (px^2), within the band of 4 steps and the band swept along the motion,
-and for the shaded disc with other shading radii (``SegmentationSettings.shading_radius``).
+and for the shaded disc with other shading radii (``SegmentationSettings.shading_radius``) and the
+local-linear shading (``SegmentationSettings.shading_fit="linear"``).
 
     python experiments/discover/shading_limb.py     # ~1 min
 """
@@ -62,14 +63,18 @@ def excess(blur_px: float, shaded: bool, **settings) -> tuple[float, float, floa
 
 
 def main() -> None:
-    print("| disc | blur (px) | band | shading radius | area | along (px²) | across (px²) |\n|---|---|---|---|---|---|---|")
+    print("| disc | blur (px) | band | shading radius and fit | area | along (px²) | across (px²) |\n|---|---|---|---|---|---|---|")
     rows = [(shaded, blur, band, 1.5) for shaded in (False, True) for blur in (0.0, 5.0, 10.0, 15.0)
             for band in ("steps", "motion")]
     rows += [(True, blur, "motion", r) for r in (0.0, 0.75, 3.0) for blur in (0.0, 10.0)]
-    for shaded, blur, band, r in rows:
-        area, along, across = excess(blur, shaded, coverage_band=band, coverage_clip=False, shading_radius=r)
-        print(f"| {'shaded' if shaded else 'flat'} | {blur:g} | {band} | {r:g} | {area:.4f} | {along:+.2f} | {across:+.2f} |",
-              flush=True)
+    rows = [row + ("constant",) for row in rows]
+    rows += [(shaded, blur, "motion", r, "linear") for shaded in (False, True) for r in (1.5, 3.0)
+             for blur in (0.0, 5.0, 10.0)]
+    for shaded, blur, band, r, fit in rows:
+        area, along, across = excess(blur, shaded, coverage_band=band, coverage_clip=False, shading_radius=r,
+                                     shading_fit=fit)
+        print(f"| {'shaded' if shaded else 'flat'} | {blur:g} | {band} | {r:g} {fit} | {area:.4f} | {along:+.2f} "
+              f"| {across:+.2f} |", flush=True)
 
 
 if __name__ == "__main__":
