@@ -727,7 +727,7 @@ if __name__ == "__main__":
                     help="with --exposure: the coverage's band swept half the frame's travel along the motion "
                          "(SegmentationSettings.coverage_band='motion'; results/concealed..._motionband/)")
     ap.add_argument("--linear-shading", action="store_true",
-                    help="with --exposure: segment with the local-linear shading "
+                    help="segment with the local-linear shading "
                          "(SegmentationSettings.shading_fit='linear'; results/concealed..._linshade/)")
     ap.add_argument("--fit-exposure", action="store_true",
                     help="with --exposure: fit the exposure's fraction as a nuisance of every model, from the "
@@ -769,7 +769,7 @@ if __name__ == "__main__":
                                    False if args.unclipped else None, args.fit_exposure, point_spread,
                                    args.exposure_taps, "motion" if args.motion_band else None,
                                    "linear" if args.linear_shading else None)
-               if args.albedo_passes is not None or args.exposure else "")
+               if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     if args.rules:  # with a variant: over its segmented runs
         text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
         (OUT.parent / f"rules{variant}.md").write_text(text + "\n")
@@ -777,7 +777,8 @@ if __name__ == "__main__":
     if not (args.edge_px >= 0):
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
-                            or args.crf is not None or args.albedo_passes is not None or args.exposure):
+                            or args.crf is not None or args.albedo_passes is not None or args.exposure
+                            or args.linear_shading):
         if variant:
             suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
@@ -839,8 +840,10 @@ if __name__ == "__main__":
         ap.error("--fit-point-spread fits the point spread without a prior: not with --point-spread-prior")
     if args.point_spread_prior and not (math.isfinite(args.point_spread_prior[0]) and args.point_spread_prior[1] > 0):
         ap.error(f"--point-spread-prior needs a finite mean and a positive spread, got {args.point_spread_prior}")
-    if (args.unclipped or args.motion_band or args.linear_shading) and not args.exposure:
-        ap.error("--unclipped, --motion-band and --linear-shading need --exposure (the options of the coverage's path)")
+    if (args.unclipped or args.motion_band) and not args.exposure:
+        ap.error("--unclipped and --motion-band need --exposure (only the exposure reads the coverage)")
+    if args.linear_shading and (args.true_masks or args.shipped or args.shutter):
+        ap.error("--linear-shading is a segmentation setting: not with --true-masks, --shipped or --shutter")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
         ap.error(f"--exposure-fraction needs --exposure and a fraction in [0, 1], got {args.exposure_fraction}")
     if args.exposure_taps is not None and not (args.exposure and (args.exposure_taps == 0 or args.exposure_taps >= 2)):
