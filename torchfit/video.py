@@ -809,6 +809,14 @@ def _albedo(colours: np.ndarray, coverage: np.ndarray | None) -> np.ndarray:
     return albedo / np.linalg.norm(albedo)
 
 
+def mask_velocity(masks: np.ndarray) -> np.ndarray:
+    """(T, 2) px per frame: the (T, H, W) bool masks' centroids' central differences (one-sided
+    at the ends; NaN beside an empty mask, zero for a single frame): the motion as the video
+    alone gives it."""
+    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
+    return np.gradient(centre, axis=0) if len(masks) > 1 else np.zeros((len(masks), 2))
+
+
 def motion_band(mask: np.ndarray, steps: int, velocity: np.ndarray) -> np.ndarray:
     """(H, W) bool: the pixels within ``steps`` 4-neighbour steps of an (H, W) bool ``mask``, that
     band then swept half the frame's travel either way along it (``velocity``, (2,) ``(du, dv)``
@@ -902,10 +910,7 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     for t in range(len(frames)):
         if masks[t].any():
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
-    velocity = np.zeros((len(frames), 2))  # px per frame, the final masks' centroids
-    if settings.coverage_band == "motion":
-        centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
-        velocity = np.gradient(centre, axis=0) if len(frames) > 1 else velocity
+    velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(frames), 2))
     cover_moments = np.zeros((len(frames), 6))
     for t in range(len(frames)):
         if masks[t].any():

@@ -58,7 +58,7 @@ import torchfit.discover_video as dv
 from torchfit.rotation import quat_to_matrix, rotation_angle
 from torchfit.search import Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
-from torchfit.video import SegmentationSettings
+from torchfit.video import SegmentationSettings, mask_velocity
 
 HERE = Path(__file__).resolve().parent
 
@@ -818,13 +818,6 @@ def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
 NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than the settings' coverage_near_px for the coverage's moments
 
 
-def _mask_velocity(masks: np.ndarray) -> np.ndarray:
-    """(T, 2) px per frame: the (T, H, W) masks' centroids' central differences (NaN beside an
-    empty mask): the motion as the video alone gives it."""
-    centre = np.array([np.argwhere(m).mean(0)[::-1] if m.any() else (np.nan, np.nan) for m in masks])
-    return np.gradient(centre, axis=0)
-
-
 def _coverage_within(kept: list, masks: np.ndarray, band: int, clip: bool = True) -> np.ndarray:
     """(T, 6) raw moments of each frame's soft coverage (``kept``, (H, W) each) within ``band``
     4-neighbour steps of its mask, clipped to [0, 1] or not, as the segmentation keeps them."""
@@ -883,14 +876,14 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
             drift = np.polyfit((frame - frame.min()) / max(frame.max() - frame.min(), 1), ratio, 1)[0]
             area[k.removesuffix(" / exact")] = [float(ratio.mean()), float(ratio.std()), float(drift)]
 
-    mask_velocity = _mask_velocity(masks)
+    motion = mask_velocity(masks)
     x, ramp, grad = [], [], []
     for t in np.flatnonzero(used):
         c = np.clip(kept[t], 0.0, 1.0) * ndimage.binary_dilation(masks[t], iterations=6)
         gy, gx = np.gradient(c)
         g = np.hypot(gx, gy)
         edge = (c > 0.02) & (c < 0.98) & (g > 0)
-        x.append(np.abs(gx[edge] * mask_velocity[t, 0] + gy[edge] * mask_velocity[t, 1]) / g[edge])
+        x.append(np.abs(gx[edge] * motion[t, 0] + gy[edge] * motion[t, 1]) / g[edge])
         ramp.append((c * (1 - c))[edge])
         grad.append(g[edge])
     x, ramp, grad = map(np.concatenate, (x, ramp, grad))
@@ -967,7 +960,7 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
            "speed_px_per_frame": [float(speed[which == b].mean()) for b in range(bins)],
            "half_blur_px": [float(own.fraction * speed[which == b].mean() / 2) for b in range(bins)], "bands": {}}
     design = np.stack((np.ones_like(speed), speed**2), 1)
-    travel = np.nan_to_num(_mask_velocity(masks))  # (T, 2) px per frame, the video's
+    travel = np.nan_to_num(mask_velocity(masks))  # (T, 2) px per frame, the video's
     for clip in (True, False):
         for kind, width in SPEED_BANDS:
             raw = raw_moments(np.stack([(np.clip(c, 0.0, 1.0) if clip else c) * _band(m, kind, width, v)
@@ -995,7 +988,7 @@ def shape_frames(folder: Path, settings=None) -> dict:
     _, averaged = _exact_moments(truth, shape, camera)
     area_o, _, cov_o = central_moments(torch.as_tensor(observation.coverage_moments))
     area_e, _, cov_e = central_moments(averaged)
-    velocity = np.nan_to_num(_mask_velocity(observation.masks))
+    velocity = np.nan_to_num(mask_velocity(observation.masks))
     rows = []
     for t in np.flatnonzero(area_o.numpy() > 0):
         speed = float(np.linalg.norm(velocity[t]))
