@@ -694,8 +694,15 @@ def _local_contrast(background: np.ndarray, albedo: np.ndarray, coverage: np.nda
     wide = [cv2.GaussianBlur(x, (0, 0), 4.0 * radius) for x in (numerator, denominator)]
     shading = np.where(near[1] > 0.02, near[0] / np.maximum(near[1], 1e-9),
                        wide[0] / np.maximum(wide[1], 1e-9))
-    if linear:
-        shading = np.where(near[1] > 0.02, _local_linear_shading(w * a * a, w * a * shaded, radius, shading), shading)
+    if linear:  # solved only over the support's box, widened by the blur's reach (4 sigma)
+        rows, cols = np.nonzero(w * a > 0)
+        if len(rows):
+            margin = int(math.ceil(4.0 * radius)) + 2
+            box = (slice(max(rows.min() - margin, 0), rows.max() + margin + 1),
+                   slice(max(cols.min() - margin, 0), cols.max() + margin + 1))
+            plane = shading.copy()
+            plane[box] = _local_linear_shading((w * a * a)[box], (w * a * shaded)[box], radius, shading[box])
+            shading = np.where(near[1] > 0.02, plane, shading)
     return shading[..., None] * albedo - background, wide[1] > 1e-3
 
 
@@ -709,7 +716,8 @@ def _local_linear_shading(weight: np.ndarray, weighted_target: np.ndarray, radiu
     ``s + g.(k - x)`` that minimises ``sum_k G(x - k) W_k (s_k - s - g.(k - x))^2``, with
     ``W = w a^2`` ((H, W) ``weight``) and ``W s_k = w a u`` ((H, W) ``weighted_target``), ``G`` a
     Gaussian of sigma ``radius``. Its normal equations come from Gaussian-blurred moments of the
-    pixel coordinates (about the image centre, float64); the gradient has a ridge of
+    pixel coordinates (about the array's centre, float64; the caller passes the box its support
+    lies in); the gradient has a ridge of
     ``SHADING_GRADIENT_RIDGE`` times a full window's spread, so a window with one-sided or thin
     support tends to the local constant. Clipped to [0, 2 x ``constant``] (the local-constant fit),
     as a plane extrapolated past its support can run off."""
