@@ -3,6 +3,7 @@
     python experiments/discover/calibrate_noise.py [names...]     # ~2-3 min per recording
     python experiments/discover/calibrate_noise.py --true-masks [names...]  # the engine's exact masks
     python experiments/discover/calibrate_noise.py --albedo-passes N [names...]  # SegmentationSettings.albedo_passes N
+    python experiments/discover/calibrate_noise.py --exposure [names...]  # the data.exposure path
 
 For each shipped MuJoCo recording (nothing missing: the model is exact up to segmentation):
 
@@ -21,6 +22,13 @@ With ``--true-masks`` the recordings' exact masks (``masks.npz``) stand in for t
 and the edge term's grid goes lower (``EXACT_EDGES``): the floor for masks without segmentation
 error (``discover_video``'s ``edge_px`` argument, ``params.edge_px`` on the command line). Writes
 results/noise_calibration_true_masks.json (no autocorrelation: there is no segmentation error).
+
+With ``--exposure`` the baseline is the one of the ``data.exposure`` path as ``concealed.py
+--albedo-passes 1 --exposure --fit-exposure`` runs it: the albedo pass (unless ``--albedo-passes``
+says otherwise), the frames' soft coverage against the silhouette averaged over the recording's
+own exposure (``truth.json``'s render), its fraction fitted. The edge term's grid goes lower
+(``EXPOSURE_EDGES``). Writes results/noise_calibration_albedo1_exposure_fitted.json. The
+autocorrelation is still the masks' against the true masks.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from concealed import recording_exposure
 from true_masks import load_problem
 
 from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
@@ -41,6 +50,7 @@ from torchfit.video import SegmentationSettings
 
 EDGES = (0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
 EXACT_EDGES = (0.1, 0.07, 0.05, 0.04, 0.03, 0.02, 0.01, 0.0)
+EXPOSURE_EDGES = (0.2, 0.15, 0.1, 0.07, 0.05, 0.04, 0.03)
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -57,24 +67,32 @@ def correlation(rec, observation, lags=(1, 2)) -> dict:
     return out
 
 
-def calibrate(name: str, true_masks: bool = False, settings: SegmentationSettings | None = None) -> dict:
+def calibrate(name: str, true_masks: bool = False, settings: SegmentationSettings | None = None,
+              exposure: bool = False) -> dict:
     rec = load_recording(name)
-    observation, problem, _ = load_problem(rec.folder, rec.shape, rec.camera, true_masks, settings)
-    video = VideoProblem(problem, candidates=())
+    observation, problem, span = load_problem(rec.folder, rec.shape, rec.camera, true_masks, settings)
+    blur = {}
+    if exposure:  # the data.exposure path: the soft coverage against the recording's exposure, fitted
+        blur = {"exposure": recording_exposure(rec.truth), "fit_exposure": True,
+                "coverage": torch.as_tensor(observation.coverage_moments[span])}
+    video = VideoProblem(problem, candidates=(), **blur)
     base = video.fit((), None)
     channels = base.payload["channels"]
     used = video.problem.used.cpu().numpy().astype(bool)
     masks = video.problem.masks.cpu().numpy() > 0.5
     jitter = {c: noise_floor(channels[c][used], FRAME_CORRELATION) for c in CHANNELS}
     rows = {}
-    for edge in EXACT_EDGES if true_masks else EDGES:
+    for edge in EXACT_EDGES if true_masks else EXPOSURE_EDGES if exposure else EDGES:
         system = systematic_floor(masks, used, edge)
         video.noise = {c: float(np.hypot(jitter[c], system[c])) for c in CHANNELS}
         chi2 = {c: float(np.nanmean(v**2)) for c, v in video.whitened_channels(channels, used).items()}
         rows[str(edge)] = {"chi2_per_obs": float(np.mean(list(chi2.values()))), "per_channel": chi2}
     if true_masks:
         return {"jitter": jitter, "rows": rows}
-    return {"jitter": jitter, "rows": rows, "autocorrelation_lag1_lag2": correlation(rec, observation)}
+    out = {"jitter": jitter, "rows": rows, "autocorrelation_lag1_lag2": correlation(rec, observation)}
+    if exposure:
+        out["exposure_fitted"] = base.payload.get("exposure")
+    return out
 
 
 if __name__ == "__main__":
@@ -82,15 +100,23 @@ if __name__ == "__main__":
     ap.add_argument("names", nargs="*", default=["tshape", "tshape_intermediate", "box_fast", "cylinder"])
     ap.add_argument("--true-masks", action="store_true", help="the engine's exact masks instead of the segmentation")
     ap.add_argument("--albedo-passes", type=int, metavar="N", help="segment with SegmentationSettings.albedo_passes N")
+    ap.add_argument("--exposure", action="store_true",
+                    help="the data.exposure path: the soft coverage against the recording's exposure, fitted "
+                         "(with the albedo pass unless --albedo-passes says otherwise)")
     args = ap.parse_args()
-    exact, passes, names = args.true_masks, args.albedo_passes, args.names
+    exact, passes, names, blur = args.true_masks, args.albedo_passes, args.names, args.exposure
     if passes is not None and (exact or passes < 0):
         ap.error(f"--albedo-passes needs a count >= 0 and segmented masks, got {passes}")
+    if blur and exact:
+        ap.error("--exposure needs the segmentation's soft coverage, not --true-masks")
+    if blur and passes is None:
+        passes = 1  # as data.exposure turns it on
     OUT = RESULTS / ("noise_calibration_true_masks.json" if exact else "noise_calibration"
-                     + (f"_albedo{passes}" if passes is not None else "") + ".json")
+                     + (f"_albedo{passes}" if passes is not None else "")
+                     + ("_exposure_fitted" if blur else "") + ".json")
     settings = None if passes is None else SegmentationSettings(albedo_passes=passes)
     for name in names:
-        result = calibrate(name, exact, settings)
+        result = calibrate(name, exact, settings, blur)
         print(name, {e: round(r["chi2_per_obs"], 3) for e, r in result["rows"].items()}, "max over channels",
               {e: round(max(r["per_channel"].values()), 3) for e, r in result["rows"].items()}, flush=True)
         if not exact:
