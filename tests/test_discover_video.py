@@ -355,14 +355,64 @@ def test_whitening_makes_frame_correlated_noise_independent_across_gaps():
     mask = rng.random(n) > 0.2  # frames left out (outliers, held out): gaps of 1-4 frames
     video = VideoProblem.__new__(VideoProblem)
     video.noise = {"scale": sigma}
+    video.frame_scale = np.ones(n)
     white = video._whitened(torch.as_tensor(sigma * x[mask])[None], mask, "scale")[0].numpy()
     assert abs(white.var() - 1.0) < 0.03
     assert abs(np.corrcoef(white[1:], white[:-1])[0, 1]) < 0.03
     # a constant offset of one noise floor over 40 frames counts as (1 - rho) / (1 + rho) of 40
     # independent observations (plus the first frame's whole)
+    video.frame_scale = np.ones(40)
     trend = video._whitened(torch.full((1, 40), sigma, dtype=torch.float64), np.ones(40, bool), "scale")
     expected = 1 + 39 * (1 - rho) / (1 + rho)
     assert abs(float(trend.square().sum()) - expected) < 1e-9
+    # with floors that differ from frame to frame (speed_noise), noise of that size whitens alike
+    video.frame_scale = np.sqrt(0.2 + 1.6 * rng.random(n))
+    white = video._whitened(torch.as_tensor(sigma * video.frame_scale[mask] * x[mask])[None], mask, "scale")[0].numpy()
+    assert abs(white.var() - 1.0) < 0.03
+    assert abs(np.corrcoef(white[1:], white[:-1])[0, 1]) < 0.03
+
+
+def _speed_noise(share: float, frames: int, seed: int) -> tuple[dict, np.ndarray]:
+    """Five channels of AR(1) noise (lag one FRAME_CORRELATION) whose variance is ``(1 - share) +
+    share q`` (q the speed squared over its mean) under a smooth trend, and the (T,) speed: a
+    throw's speed profile, fast at both ends, repeated."""
+    from torchfit.discover_video import FRAME_CORRELATION
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames)
+    speed = 8.0 + 17.0 * np.abs(np.cos(np.pi * (t % 45) / 44.0))
+    q = speed**2 / np.mean(speed**2)
+    channels = {}
+    for k, size in enumerate((0.2, 0.2, 0.004, 0.01, 0.003)):
+        x = np.empty(frames)
+        x[0] = rng.normal()
+        for i in range(1, frames):
+            x[i] = FRAME_CORRELATION * x[i - 1] + np.sqrt(1 - FRAME_CORRELATION**2) * rng.normal()
+        channels[f"c{k}"] = size * (np.sqrt((1 - share) + share * q) * x + 3.0 * (t / frames) ** 2)
+    return channels, speed
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 0.8])
+def test_speed_scale_reads_the_share_of_noise_that_grows_with_the_speed(share):
+    """``speed_scale`` reads from the residuals alone how much of the noise grows with the speed
+    (a trend does not count), and scales the floors so their square averages 1 over the used
+    frames; too few frames, or no speed, leave every floor as it is."""
+    from torchfit.discover_video import SPEED_NOISE_MAX, speed_scale
+
+    channels, speed = _speed_noise(share, 4500, seed=int(10 * share))
+    used = np.ones(len(speed), bool)
+    used[::7] = False
+    scale, lam = speed_scale(channels, used, speed)
+    assert lam == pytest.approx(share, abs=0.1)
+    assert 0.0 <= lam <= SPEED_NOISE_MAX
+    assert np.mean(scale[used] ** 2) == pytest.approx(1.0, rel=1e-9)
+    q = speed**2 / np.mean(speed[used] ** 2)
+    assert np.allclose(scale, np.sqrt((1 - lam) + lam * q))
+    few = np.zeros(len(speed), bool)
+    few[:6] = True
+    for args in ((channels, few, speed), (channels, used, np.zeros_like(speed))):
+        scale, lam = speed_scale(*args)
+        assert lam == 0.0 and np.all(scale == 1.0)
 
 
 def test_edge_term_of_the_noise_floor_is_the_one_given(tmp_path):
@@ -719,6 +769,32 @@ def test_report_locates_a_size_mismatch_the_edge_bias_took():
     assert "smaller than the depth" in line and line.endswith("With time_scale the edge bias is +0.05 px.")
     assert "larger than the depth" in size_mismatch_lines(size_mismatch({"value": 0.6, "std": 0.05}, {"value": 0.6}), [])[0]
     assert size_mismatch_lines(None, []) == []
+
+
+def test_cli_speed_noise_is_checked_and_recorded(tmp_path):
+    """``params.speed_noise``: true records the share of the noise read as growing with the speed
+    (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    from torchfit.discover_video import SPEED_NOISE_MAX
+    from torchfit.run import ConfigError, run
+
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    common = ["experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+              f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
+              "outputs.overlay_video=false", "quiet=true"]
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common + ["params.speed_noise=sometimes"])
+    with pytest.raises(ConfigError, match="params.speed_noise must be true or false, got 'sometimes'"):
+        run(cfg, tmp_path / "bad")
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common + ["params.speed_noise=true"])
+    run(cfg, tmp_path / "good")
+    content = json.loads((tmp_path / "good" / "discover.json").read_text())
+    assert 0.0 <= content["noise_speed_share"] <= SPEED_NOISE_MAX
+    assert content["models"][0]["chi2_per_obs"] > 0
 
 
 def test_cli_exposure_is_checked_and_recorded(tmp_path):

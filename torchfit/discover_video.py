@@ -168,6 +168,61 @@ def _as_float64(problem: Problem) -> Problem:
                    masks=problem.masks.double(), boxes=problem.boxes.double(), _targets={})
 
 
+# The largest share of a frame's noise variance that may grow with its speed
+# (VideoProblem(speed_noise=True), :func:`speed_scale`): at least a tenth stays the same at every speed.
+SPEED_NOISE_MAX = 0.9
+
+
+def speed_scale(channels: dict, used: np.ndarray, speed: np.ndarray,
+                largest: float = SPEED_NOISE_MAX) -> tuple[np.ndarray, float]:
+    """Per-frame scale of the noise floors when the segmentation errs more on fast frames.
+
+    The variance of a frame's residual noise is taken as ``(1 - lam) + lam q`` times a constant,
+    ``q = s^2 / mean(s^2)`` its speed squared over the used frames' mean: ``lam = 0`` the same
+    noise in every frame, ``lam = 1`` noise in proportion to the speed (a blurred edge's ramp is
+    as long as the travel within the exposure). ``lam`` is read from the data: each channel's
+    second differences over the used frames (a smooth trend, missing physics among it, cancels)
+    in units of their own robust spread, pooled over the channels, split at the median ``q``; the
+    ratio of the two halves' robust variances ``R`` gives ``lam = (R - 1) / (q_hi - 1 - R (q_lo -
+    1))``, held to ``[0, largest]``.
+
+    Args:
+        channels: channel name -> (T,) residuals (NaN where unused).
+        used: (T,) bool frames in the fit.
+        speed: (T,) the silhouette's speed, px per frame.
+        largest: the largest ``lam``.
+
+    Returns:
+        ``(g, lam)``: (T,) scale ``sqrt((1 - lam) + lam q)`` of every channel's floor (its square
+        averages 1 over the used frames), and ``lam``.
+    """
+    idx = np.flatnonzero(used)
+    power = speed**2
+    mean = float(np.mean(power[idx])) if len(idx) else 0.0
+    if len(idx) < 8 or not mean > 0:
+        return np.ones_like(speed, dtype=np.float64), 0.0
+    q = power / mean
+    pooled, where = [], []
+    for values in channels.values():
+        second = np.diff(np.asarray(values, dtype=np.float64)[idx], 2)
+        centred = second - np.median(second)
+        spread = 1.4826 * np.median(np.abs(centred))
+        if np.isfinite(spread) and spread > 0:
+            pooled.append(np.abs(centred) / spread)
+            where.append(q[idx[1:-1]])
+    if not pooled:
+        return np.ones_like(speed, dtype=np.float64), 0.0
+    size, at = np.concatenate(pooled), np.concatenate(where)
+    fast = at > np.median(at)
+    if fast.all() or not fast.any():
+        return np.ones_like(speed, dtype=np.float64), 0.0
+    ratio = (np.median(size[fast]) / np.median(size[~fast])) ** 2
+    q_lo, q_hi = float(np.mean(at[~fast])), float(np.mean(at[fast]))
+    denominator = (q_hi - 1.0) - ratio * (q_lo - 1.0)
+    lam = largest if denominator <= 0 else float(np.clip((ratio - 1.0) / denominator, 0.0, largest))
+    return np.sqrt((1.0 - lam) + lam * q), lam
+
+
 def _moments(cover: Tensor, windows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Image-pixel moments of (T, h, w) crop coverage seen through (T, 3) windows ``(u0, v0, stride)``."""
     area, centre, cov = mask_moments(cover)
@@ -402,6 +457,13 @@ class VideoProblem:
             from the search's best either way. On fresh-1 control_cylinder the search's second
             candidate ended at chi2/n 0.60 where its best ended at 0.72
             (experiments/discover/diagnose.py baseline-starts).
+        speed_noise: each frame's noise floor grows with the baseline silhouette's speed, by a
+            share of its variance read from the baseline's residuals (:func:`speed_scale`):
+            the segmentation's error grows with the blur (on the first set's controls its RMS in
+            the fastest quarter of the frames is up to 4 times the slowest's,
+            experiments/discover/diagnose.py error-speed), and a floor the same on every frame
+            gives the fast frames' errors the weight of evidence. Off: the same floor on every
+            frame (the default).
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -417,7 +479,7 @@ class VideoProblem:
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
-                 progress: Callable[[str], None] | None = None):
+                 speed_noise: bool = False, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -474,6 +536,11 @@ class VideoProblem:
             self.coverage_shift = coverage.to(problem.masks) - mask_raw.to(problem.masks)
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
+        self.speed_noise = speed_noise
+        # (T,) each frame's floor over the channel's (speed_noise: grows with the speed; set by
+        # the baseline fit), and the share of the noise that grows with the speed
+        self.frame_scale = np.ones(len(problem.times))
+        self.speed_share = 0.0
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
@@ -554,7 +621,7 @@ class VideoProblem:
 
     def _normalised(self, channels: dict, mask: np.ndarray) -> np.ndarray:
         """(N, C) residuals of the frames in ``mask`` divided by the noise floors."""
-        return np.stack([channels[c][mask] / self.noise[c] for c in CHANNELS], -1)
+        return np.stack([channels[c][mask] / (self.noise[c] * self.frame_scale[mask]) for c in CHANNELS], -1)
 
     def _whitened(self, values: Tensor, mask: np.ndarray, channel: str) -> Tensor:
         """(B, N) residuals of the N frames in ``mask`` in units of independent noise.
@@ -566,7 +633,8 @@ class VideoProblem:
         fewer independent observations than the frames it spans.
         """
         frames = torch.as_tensor(np.flatnonzero(mask), dtype=values.dtype, device=values.device)
-        scaled = values / self.noise[channel]
+        floors = torch.as_tensor(self.noise[channel] * self.frame_scale[mask], dtype=values.dtype, device=values.device)
+        scaled = values / floors
         if FRAME_CORRELATION == 0 or len(frames) < 2:
             return scaled
         a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
@@ -1044,7 +1112,12 @@ class VideoProblem:
             self.train = self.train & ~outliers
             self.held = self.held & ~outliers
             used = used & ~outliers
-        self.noise = {name: float(np.hypot(noise_floor(channels[name][used], FRAME_CORRELATION), self.systematic[name]))
+        if self.speed_noise:  # floors that grow with the speed of the baseline's silhouette
+            centre = fitted[1][0].cpu().numpy()
+            self.frame_scale, self.speed_share = speed_scale(channels, used, np.linalg.norm(np.gradient(centre, axis=0), axis=1))
+        scale = self.frame_scale[used]
+        self.noise = {name: float(np.hypot(noise_floor(channels[name][used] / scale, FRAME_CORRELATION),
+                                           self.systematic[name]))
                       for name in CHANNELS}
 
 
@@ -1138,7 +1211,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
-                   baseline_starts: int = 1, progress: Callable[[str], None] | None = None) -> dict:
+                   baseline_starts: int = 1, speed_noise: bool = False,
+                   progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1163,6 +1237,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             :class:`VideoProblem`).
         baseline_starts: the baseline's refit from this many of the search's candidates (see
             :class:`VideoProblem`).
+        speed_noise: noise floors that grow with the silhouette's speed, by a share read from the
+            data (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1178,7 +1254,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
                          fit_exposure=fit_exposure, point_spread=point_spread,
-                         baseline_starts=baseline_starts, progress=say)
+                         baseline_starts=baseline_starts, speed_noise=speed_noise, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1205,6 +1281,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
         "noise": video.noise,
         "noise_edge_px": edge_px,
+        "noise_speed_share": video.speed_share if speed_noise else None,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,

@@ -420,6 +420,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     edge_px = float(settings.pop("edge_px", EDGE_PX))
     if not (math.isfinite(edge_px) and edge_px >= 0):
         raise ConfigError(f"params.edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
+    speed_noise = settings.pop("speed_noise", False)
+    if not isinstance(speed_noise, bool):
+        raise ConfigError(f"params.speed_noise must be true or false, got {speed_noise!r}")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -463,7 +466,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     summary = discover_video(problem, observation, span, candidates=candidates, settings=rules,
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
-                             exposure=exposure, fit_exposure=fit_exposure, progress=ctx["progress"])
+                             exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
+                             progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")

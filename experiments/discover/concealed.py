@@ -79,7 +79,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
-            shading_fit: str | None = None) -> dict:
+            shading_fit: str | None = None, speed_noise: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
@@ -90,7 +90,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
     return discover_video(problem, observation, span, candidates=candidates, settings=VIDEO_SELECTION,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
-                          fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts)
+                          fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
+                          speed_noise=speed_noise)
 
 
 def recording_exposure(truth: dict, fraction: float | None = None, taps: int | None = None) -> Exposure:
@@ -641,7 +642,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
-         shading_fit: str | None = None) -> None:
+         shading_fit: str | None = None, speed_noise: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -658,6 +659,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                                                   coverage_band, shading_fit)
                             + "".join(f"_with_{name}" for name in extra)
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
+                            + ("_speednoise" if speed_noise else "")
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
         return print(rebuild(out, recordings))
@@ -681,7 +683,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           transfer=read_as or transfer, exposure=exposure, exposure_fraction=exposure_fraction,
                           coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
-                          coverage_band=coverage_band, shading_fit=shading_fit)
+                          coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -747,6 +749,9 @@ if __name__ == "__main__":
     ap.add_argument("--exposure-taps", type=int, metavar="T",
                     help="with --exposure: the exposure as T sub-frames instead of the recording's own, 0 a "
                          "camera's, as a user who does not know the renderer gives it (results/concealed..._taps<T>/)")
+    ap.add_argument("--speed-noise", action="store_true",
+                    help="noise floors that grow with the silhouette's speed, by a share read from the data "
+                         "(discover_video(speed_noise=True); results/concealed..._speednoise/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -770,6 +775,7 @@ if __name__ == "__main__":
                                    args.exposure_taps, "motion" if args.motion_band else None,
                                    "linear" if args.linear_shading else None)
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
+    variant += "_speednoise" if args.speed_noise else ""
     if args.rules:  # with a variant: over its segmented runs
         text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
         (OUT.parent / f"rules{variant}.md").write_text(text + "\n")
@@ -778,7 +784,7 @@ if __name__ == "__main__":
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
-                            or args.linear_shading):
+                            or args.linear_shading or args.speed_noise):
         if variant:
             suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
@@ -795,7 +801,8 @@ if __name__ == "__main__":
                               + (["the exposure fitted"] if args.fit_exposure else [])
                               + ([] if point_spread is None else
                                  ["the point spread fitted" + ("" if math.isinf(point_spread[1]) else
-                                                               f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")]))
+                                                               f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")])
+                              + (["noise floors growing with the speed"] if args.speed_noise else []))
             text = side_by_side(suffix, label, column="segmentation")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
@@ -868,4 +875,5 @@ if __name__ == "__main__":
          exposure_fraction=args.exposure_fraction, coverage_near_px=args.coverage_near_px,
          coverage_clip=False if args.unclipped else None, fit_exposure=args.fit_exposure,
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
-         coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None)
+         coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
+         speed_noise=args.speed_noise)

@@ -19,6 +19,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py blur-speed SET NAME... [SETTING=V...]  # the coverage's blur reading against the speed, per band, ~30 s each
     python experiments/discover/diagnose.py area SET NAME... [SETTING=V...]  # the coverage's area per frame against the background's contrast, ~30 s each
     python experiments/discover/diagnose.py spread-stall SET NAME... [SETTING=V...]  # the baseline with a point spread (1 ± 1 px², none) and 45 more LM iterations, ~6 min each
+    python experiments/discover/diagnose.py error-speed SET NAME... [SETTING=V...]  # the segmentation's error per channel against the speed, masks and coverage, ~20 s each
     python experiments/discover/diagnose.py shape-frames SET NAME... [SETTING=V...]  # the coverage's area and variance excess per frame against the exact exposure average, ~20 s each
     python experiments/discover/diagnose.py baseline-starts SET NAME... [SETTING=V...]  # the baseline's LM from each of the search's first 4 candidates, ~3 min each
     python experiments/discover/diagnose.py exact-coverage SET NAME... [SETTING=V...] [parts=area,centroid,shape|spread|stretch]  # discover with the exposure on a coverage partly exact, ~8 min each
@@ -1089,6 +1090,42 @@ def exact_coverage(folder: Path, settings=None, parts: tuple[str, ...] = COVERAG
             "iou_final": out["iou_final"], "report": out["report"]}
 
 
+def error_speed(folder: Path, settings=None, bins: int = 4) -> dict:
+    """Does the segmentation err more on fast frames? Per residual channel
+    (:data:`torchfit.residuals.CHANNELS`), the segmentation's error, its RMS about its median
+    within each speed quartile (slowest first): the masks against the engine's true masks
+    (``masks.npz``, at each frame's time), and the soft coverage (``settings``) against the true
+    silhouette's exact exposure average (:func:`_exact_moments`). Speed: the exact frame-time
+    centroid's, central differences, px per frame. ``ratio``: fastest over slowest quartile."""
+    from torchfit.losses import central_moments, mask_moments
+    from torchfit.residuals import CHANNELS, channel_values
+
+    truth, shape, camera = recording_parts(folder)
+    observation, _, span = load_problem(folder, shape, camera, False, settings)
+    mid, averaged = _exact_moments(truth, shape, camera)
+    speed = np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)
+    edges = np.quantile(speed, np.linspace(0, 1, bins + 1))
+    quartile = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, bins - 1)
+    true = torch.as_tensor(np.load(folder / "masks.npz")["masks"][span], dtype=torch.float64)
+    seen = torch.as_tensor(observation.masks, dtype=torch.float64)
+    pairs = {"masks": (mask_moments(seen), mask_moments(true)),
+             "coverage": (central_moments(torch.as_tensor(observation.coverage_moments[span], dtype=torch.float64)),
+                          central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64)))}
+    whole = _whole(observation.masks)
+    out = {"speed_px_per_frame": [float(speed[quartile == k].mean()) for k in range(bins)]}
+    for kind, (observed, exact) in pairs.items():
+        errors = channel_values(observed, exact)
+        rows = {}
+        for c in CHANNELS:
+            v = errors[c].numpy()
+            keep = whole & np.isfinite(v)
+            v = v - np.median(v[keep])
+            rms = [float(np.sqrt(np.mean(v[keep & (quartile == k)] ** 2))) for k in range(bins)]
+            rows[c] = {"rms": rms, "ratio": rms[-1] / rms[0] if rms[0] > 0 else float("nan")}
+        out[kind] = rows
+    return out
+
+
 def spread_stall(folder: Path, settings=None, priors=((1.0, 1.0), (0.0, math.inf)), more: int = 45) -> dict:
     """Does a fitted point spread leave the baseline short of its minimum? One search, then
     discover's baseline on the coverage (the recording's exposure, ``concealed.py --exposure``)
@@ -1209,7 +1246,7 @@ def main(argv: list[str]) -> None:
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
                 "spread-stall": spread_stall, "baseline-starts": baseline_starts,
-                "shape-frames": shape_frames}
+                "shape-frames": shape_frames, "error-speed": error_speed}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1222,11 +1259,12 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions + parts + held]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
-                          "shape-frames")
+                          "shape-frames", "error-speed")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
-                                                      "baseline-starts", "heldout-blur", "shape-frames") else {})
+                                                      "baseline-starts", "heldout-blur", "shape-frames",
+                                                      "error-speed") else {})
     if command == "heldout-blur" and changes:  # the blurred path's albedo pass, unless set
         changes = {"albedo_passes": 1} | changes
     if command == "search" and not changes:
