@@ -355,13 +355,12 @@ def test_whitening_makes_frame_correlated_noise_independent_across_gaps():
     mask = rng.random(n) > 0.2  # frames left out (outliers, held out): gaps of 1-4 frames
     video = VideoProblem.__new__(VideoProblem)
     video.noise = {"scale": sigma}
-    video.frame_scale = np.ones(n)
+    video.frame_scale = None
     white = video._whitened(torch.as_tensor(sigma * x[mask])[None], mask, "scale")[0].numpy()
     assert abs(white.var() - 1.0) < 0.03
     assert abs(np.corrcoef(white[1:], white[:-1])[0, 1]) < 0.03
     # a constant offset of one noise floor over 40 frames counts as (1 - rho) / (1 + rho) of 40
     # independent observations (plus the first frame's whole)
-    video.frame_scale = np.ones(40)
     trend = video._whitened(torch.full((1, 40), sigma, dtype=torch.float64), np.ones(40, bool), "scale")
     expected = 1 + 39 * (1 - rho) / (1 + rho)
     assert abs(float(trend.square().sum()) - expected) < 1e-9

@@ -537,9 +537,10 @@ class VideoProblem:
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.speed_noise = speed_noise
-        # (T,) each frame's floor over the channel's (speed_noise: grows with the speed; set by
-        # the baseline fit), and the share of the noise that grows with the speed
-        self.frame_scale = np.ones(len(problem.times))
+        # speed_noise: (T,) each frame's floor over the channel's, growing with the speed (set by
+        # the baseline fit; None: the same floor on every frame), and the share of the noise that
+        # grows with the speed
+        self.frame_scale: np.ndarray | None = None
         self.speed_share = 0.0
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
         self.noise_var = 1.0  # residuals are divided by their noise floors
@@ -621,20 +622,23 @@ class VideoProblem:
 
     def _normalised(self, channels: dict, mask: np.ndarray) -> np.ndarray:
         """(N, C) residuals of the frames in ``mask`` divided by the noise floors."""
-        return np.stack([channels[c][mask] / (self.noise[c] * self.frame_scale[mask]) for c in CHANNELS], -1)
+        scale = 1.0 if self.frame_scale is None else self.frame_scale[mask]
+        return np.stack([channels[c][mask] / self.noise[c] / scale for c in CHANNELS], -1)
 
     def _whitened(self, values: Tensor, mask: np.ndarray, channel: str) -> Tensor:
         """(B, N) residuals of the N frames in ``mask`` in units of independent noise.
 
         The noise is AR(1) from frame to frame (lag-one correlation ``FRAME_CORRELATION``, noise
-        floor ``self.noise[channel]``), so ``w_0 = r_0 / s`` and ``w_k = (r_k - a r_(k-1)) / (s
-        sqrt(1 - a^2))`` with ``a = rho^gap`` for frames ``gap`` apart (exact for gaps): the sum
+        floor ``self.noise[channel]``, times ``self.frame_scale`` per frame with speed_noise), so
+        ``w_0 = r_0 / s`` and ``w_k = (r_k - a r_(k-1)) / (s sqrt(1 - a^2))`` (the residuals divided
+        by their floors first) with ``a = rho^gap`` for frames ``gap`` apart (exact for gaps): the sum
         of squares is the residual's chi-squared under that noise. A smooth trend counts as
         fewer independent observations than the frames it spans.
         """
         frames = torch.as_tensor(np.flatnonzero(mask), dtype=values.dtype, device=values.device)
-        floors = torch.as_tensor(self.noise[channel] * self.frame_scale[mask], dtype=values.dtype, device=values.device)
-        scaled = values / floors
+        scaled = values / self.noise[channel]
+        if self.frame_scale is not None:  # speed_noise: each frame's floor
+            scaled = scaled / torch.as_tensor(self.frame_scale[mask], dtype=values.dtype, device=values.device)
         if FRAME_CORRELATION == 0 or len(frames) < 2:
             return scaled
         a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
@@ -1113,9 +1117,9 @@ class VideoProblem:
             self.held = self.held & ~outliers
             used = used & ~outliers
         if self.speed_noise:  # floors that grow with the speed of the baseline's silhouette
-            centre = fitted[1][0].cpu().numpy()
-            self.frame_scale, self.speed_share = speed_scale(channels, used, np.linalg.norm(np.gradient(centre, axis=0), axis=1))
-        scale = self.frame_scale[used]
+            speed = np.linalg.norm(np.gradient(fitted[1][0].cpu().numpy(), axis=0), axis=1)
+            self.frame_scale, self.speed_share = speed_scale(channels, used, speed)
+        scale = 1.0 if self.frame_scale is None else self.frame_scale[used]
         self.noise = {name: float(np.hypot(noise_floor(channels[name][used] / scale, FRAME_CORRELATION),
                                            self.systematic[name]))
                       for name in CHANNELS}
