@@ -459,8 +459,9 @@ class VideoProblem:
             (experiments/discover/diagnose.py baseline-starts).
         speed_noise: each frame's noise floor grows with the baseline silhouette's speed, by a
             share of its variance read from the baseline's residuals (:func:`speed_scale`):
-            the segmentation's error grows with the blur (on the first set's controls its RMS in
-            the fastest quarter of the frames is up to 4 times the slowest's,
+            the segmentation's error grows with the blur (on the concealed set's first 18
+            recordings the masks' error RMS in the fastest quarter of the frames is, per channel,
+            a median 2.0-2.7 times the slowest quarter's, at 2.5 times the speed;
             experiments/discover/diagnose.py error-speed), and a floor the same on every frame
             gives the fast frames' errors the weight of evidence. Off: the same floor on every
             frame (the default).
