@@ -450,6 +450,25 @@ def test_side_by_side_counts_only_recordings_run_both_ways(tmp_path, suffix, kin
     assert f"| first | {other} |" not in text  # no set of the other masks was run both ways
 
 
+def test_side_by_side_compares_a_variant_with_the_path_it_extends(tmp_path):
+    """With ``base``, a variant layered on another path (the speed-scaled floors on the exposure
+    path) is compared with that path's runs, named ``base_label``, not with the default's."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    drag = {"quadratic_drag": {"drag_coefficient": 0.5}}
+    runs = {"concealed": {"drag_a": [], "drag_b": []},
+            "concealed_path": {"drag_a": ["quadratic_drag"], "drag_b": []},
+            "concealed_path_more": {"drag_a": ["quadratic_drag"], "drag_b": ["quadratic_drag"]}}
+    for name, verdicts in runs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(
+            json.dumps([conc.row(rec, _content(verdict, drag)) for rec, verdict in verdicts.items()]))
+    text = conc.side_by_side("_path_more", "more", tmp_path, base="_path", base_label="path")
+    assert "| first | segmented | path | 1 of 2 |" in text and "| first | segmented | more | 2 of 2 |" in text
+    assert "| first | segmented | drag_b | quadratic_drag | none (NO) | quadratic_drag (yes) | 1.00 / 1.00 |" in text
+    assert "drag_a" not in text.split("differs")[1] and "default" not in text
+
+
 def test_candidate_rounds_lists_the_rounds_an_extra_candidate_beat_the_threshold(tmp_path):
     """--scoreboard --with NAME lists each round where NAME lowered the BIC by more than the
     threshold, with the tests it failed and the round's strongest passing candidate."""

@@ -429,28 +429,29 @@ def _rounds(content: dict) -> dict:
 
 
 def side_by_side(suffix: str, label: str, root: Path = OUT.parent, masks: tuple[str, ...] = ("segmented",),
-                 column: str = "run") -> str:
+                 column: str = "run", base: str = "", base_label: str = "default") -> str:
     """Every stored set as run by default and as run with a variant (its folders end in ``suffix``:
     ``_chroma0.75`` for ``--chroma-weight 0.75``, ``_with_rolling_shutter`` for ``--with
     rolling_shutter``), over the recordings run both ways: the score of each set and of all, and
     every recording whose verdict or held-out halving differs. ``label`` names the variant's rows,
     ``column`` the column that holds ``default`` or ``label``; ``masks``: "segmented", "exact" (from
-    the stored summary.json files under ``root``; no fitting)."""
+    the stored summary.json files under ``root``; no fitting). ``base``: the suffix of the runs
+    compared against (another variant's, named ``base_label``), the default's if empty."""
     lines = [f"| set | masks | {column} | right | controls quiet | wrong names | held-out halved "
              "| coefficients within 25 % | recordings run both ways |", "|---|---|---|---|---|---|---|---|---|"]
-    changed = [f"| set | masks | recording | hidden | verdict, default | verdict, {label} "
-               f"| held-out px after, default / {label} |", "|---|---|---|---|---|---|---|"]
+    changed = [f"| set | masks | recording | hidden | verdict, {base_label} | verdict, {label} "
+               f"| held-out px after, {base_label} / {label} |", "|---|---|---|---|---|---|---|"]
     totals: dict = {}
     run_both = dict.fromkeys(masks, 0)
     for name_label, name in SETS.items():
         for kind in masks:
             folder = name + MASKS[kind]
-            pair = [root / folder / "summary.json", root / f"{folder}{suffix}" / "summary.json"]
+            pair = [root / f"{folder}{base}" / "summary.json", root / f"{folder}{suffix}" / "summary.json"]
             if not all(f.exists() for f in pair):
                 continue
             rows = [{r["recording"]: r for r in json.loads(f.read_text())} for f in pair]
             common = sorted(set(rows[0]) & set(rows[1]))
-            for variant, by_name in zip(("default", label), rows):
+            for variant, by_name in zip((base_label, label), rows):
                 counts = score([by_name[n] for n in common])
                 _add_counts(totals.setdefault((kind, variant), {}), counts)
                 lines.append(_board_row(name_label, f"{kind} | {variant}", counts, str(len(common))))
@@ -803,7 +804,10 @@ if __name__ == "__main__":
                                  ["the point spread fitted" + ("" if math.isinf(point_spread[1]) else
                                                                f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")])
                               + (["noise floors growing with the speed"] if args.speed_noise else []))
-            text = side_by_side(suffix, label, column="segmentation")
+            # the floors growing with the speed on another path: against that path without them
+            path = variant.removesuffix("_speednoise") if args.speed_noise else ""
+            path_label = label.removesuffix(", noise floors growing with the speed") if path else "default"
+            text = side_by_side(suffix, label, column="segmentation", base=path, base_label=path_label)
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
             text = side_by_side(suffix, label, column="H.264 quality")
