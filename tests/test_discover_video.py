@@ -794,6 +794,7 @@ def test_cli_speed_noise_is_checked_and_recorded(tmp_path):
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert 0.0 <= content["noise_speed_share"] <= SPEED_NOISE_MAX
     assert content["models"][0]["chi2_per_obs"] > 0
+    assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
 
 
 def test_cli_exposure_is_checked_and_recorded(tmp_path):

@@ -1473,6 +1473,11 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
                  f"(noise floors: " + ", ".join(f"{k} {v:.2g}" for k, v in video.noise.items()) + ").")
+    if video.frame_scale is not None:
+        scale = video.frame_scale[video.problem.used.cpu().numpy().astype(bool)]
+        lines.append(f"Noise floors grow with the speed (params.speed_noise): {video.speed_share:.2f} of the noise "
+                     f"variance read as growing with it; each frame's floor is {scale.min():.2f}-{scale.max():.2f} "
+                     f"times the channel's above.")
     edge = final.payload["edge_px"]
     lines.append(f"Segmentation edge bias (a nuisance every model fits): {edge['value']:+.2f} ± {edge['std']:.2f} px "
                  f"(observed outline outside the true one when positive), ends minus sides "
