@@ -1180,8 +1180,10 @@ def motion_stretch(observed_cov: np.ndarray, fitted_centroid: np.ndarray, fitted
 
 
 def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: dict, train: np.ndarray,
-                  held: np.ndarray, path: Path) -> None:
-    """Residual channels against time, one column per model (baseline, then each effect added)."""
+                  held: np.ndarray, path: Path, frame_scale: np.ndarray | None = None) -> None:
+    """Residual channels against time, one column per model (baseline, then each effect added);
+    the grey band is each channel's noise floor, times (T,) ``frame_scale`` per frame where the
+    floors grow with the speed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1193,7 +1195,11 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
         for row, name in enumerate(CHANNELS):
             ax = axes[row, col]
             values = channels[name]
-            ax.axhspan(-noise[name], noise[name], color="0.85", zorder=0)
+            if frame_scale is None:
+                ax.axhspan(-noise[name], noise[name], color="0.85", zorder=0)
+            else:
+                band = noise[name] * frame_scale
+                ax.fill_between(times, -band, band, color="0.85", zorder=0, lw=0)
             ax.axhline(0, color="k", lw=0.5)
             ax.plot(times[train], values[train], ".-", ms=3, lw=0.8, color="C0", label="fitted frames")
             ax.plot(times[held], values[held], ".-", ms=3, lw=0.8, color="C3", label="held out (predicted)")
@@ -1328,7 +1334,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
         plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
                        for label, f in labelled], times, video.noise, video.train, video.held,
-                      out_dir / "residuals.png")
+                      out_dir / "residuals.png", video.frame_scale)
         (out_dir / "report.txt").write_text("\n".join(report) + "\n")
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]
         if overlay:
