@@ -1103,15 +1103,15 @@ def error_speed(folder: Path, settings=None, bins: int = 4) -> dict:
     truth, shape, camera = recording_parts(folder)
     observation, _, span = load_problem(folder, shape, camera, False, settings)
     mid, averaged = _exact_moments(truth, shape, camera)
-    speed = np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)
+    speed = np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)[span]
     edges = np.quantile(speed, np.linspace(0, 1, bins + 1))
     quartile = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, bins - 1)
     true = torch.as_tensor(np.load(folder / "masks.npz")["masks"][span], dtype=torch.float64)
-    seen = torch.as_tensor(observation.masks, dtype=torch.float64)
+    seen = torch.as_tensor(observation.masks[span], dtype=torch.float64)
     pairs = {"masks": (mask_moments(seen), mask_moments(true)),
              "coverage": (central_moments(torch.as_tensor(observation.coverage_moments[span], dtype=torch.float64)),
-                          central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64)))}
-    whole = _whole(observation.masks)
+                          central_moments(torch.as_tensor(np.asarray(averaged)[span], dtype=torch.float64)))}
+    whole = _whole(observation.masks[span])
     out = {"speed_px_per_frame": [float(speed[quartile == k].mean()) for k in range(bins)]}
     for kind, (observed, exact) in pairs.items():
         errors = channel_values(observed, exact)
