@@ -792,7 +792,7 @@ if __name__ == "__main__":
                        else f"an exposure of {args.exposure_fraction:g}") + (
                 "" if args.exposure_taps is None else " as a camera's" if args.exposure_taps == 0
                 else f" in {args.exposure_taps} sub-frames")
-            label = ", ".join(([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
+            path_parts = (([f"albedo passes {args.albedo_passes}"] if args.albedo_passes is not None else [])
                               + ([f"coverage against {against}"] if args.exposure else [])
                               + ([f"coverage within {args.coverage_near_px} px"]
                                  if args.coverage_near_px is not None else [])
@@ -802,12 +802,12 @@ if __name__ == "__main__":
                               + (["the exposure fitted"] if args.fit_exposure else [])
                               + ([] if point_spread is None else
                                  ["the point spread fitted" + ("" if math.isinf(point_spread[1]) else
-                                                               f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")])
-                              + (["noise floors growing with the speed"] if args.speed_noise else []))
+                                                               f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")]))
+            label = ", ".join(path_parts + (["noise floors growing with the speed"] if args.speed_noise else []))
             # the floors growing with the speed on another path: against that path without them
             path = variant.removesuffix("_speednoise") if args.speed_noise else ""
-            path_label = label.removesuffix(", noise floors growing with the speed") if path else "default"
-            text = side_by_side(suffix, label, column="segmentation", base=path, base_label=path_label)
+            text = side_by_side(suffix, label, column="segmentation", base=path,
+                                base_label=", ".join(path_parts) if path else "default")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
             text = side_by_side(suffix, label, column="H.264 quality")

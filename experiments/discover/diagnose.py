@@ -819,6 +819,12 @@ def _ramp_width(length: np.ndarray, sigma: float) -> np.ndarray:
 NEAR_PX = (2, 6, 8, 12)  # blur-estimate: other bands than the settings' coverage_near_px for the coverage's moments
 
 
+def _quantile_bins(values: np.ndarray, bins: int) -> np.ndarray:
+    """(N,) index 0..bins-1 of each of (N,) ``values`` among their ``bins`` quantiles, lowest first."""
+    edges = np.quantile(values, np.linspace(0, 1, bins + 1))
+    return np.clip(np.searchsorted(edges, values, side="right") - 1, 0, bins - 1)
+
+
 def _coverage_within(kept: list, masks: np.ndarray, band: int, clip: bool = True) -> np.ndarray:
     """(T, 6) raw moments of each frame's soft coverage (``kept``, (H, W) each) within ``band``
     4-neighbour steps of its mask, clipped to [0, 1] or not, as the segmentation keeps them."""
@@ -888,7 +894,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
         ramp.append((c * (1 - c))[edge])
         grad.append(g[edge])
     x, ramp, grad = map(np.concatenate, (x, ramp, grad))
-    which = np.clip(np.searchsorted(np.quantile(x, np.linspace(0, 1, bins + 1)), x, side="right") - 1, 0, bins - 1)
+    which = _quantile_bins(x, bins)
     travel = np.array([np.average(x[which == b], weights=grad[which == b]) for b in range(bins)])
     width = np.array([6 * ramp[which == b].sum() / grad[which == b].sum() for b in range(bins)])
     lengths = np.linspace(0.0, 1.05 * travel.max(), 211)
@@ -955,8 +961,7 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
         return central_moments(torch.as_tensor(raw, dtype=torch.float64))[2].numpy()[used]
 
     reference = covariance(averaged)
-    edges = np.quantile(speed, np.linspace(0, 1, bins + 1))
-    which = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, bins - 1)
+    which = _quantile_bins(speed, bins)
     out = {"true_exposure": own.fraction, "frames": int(used.sum()),
            "speed_px_per_frame": [float(speed[which == b].mean()) for b in range(bins)],
            "half_blur_px": [float(own.fraction * speed[which == b].mean() / 2) for b in range(bins)], "bands": {}}
@@ -1104,8 +1109,7 @@ def error_speed(folder: Path, settings=None, bins: int = 4) -> dict:
     observation, _, span = load_problem(folder, shape, camera, False, settings)
     mid, averaged = _exact_moments(truth, shape, camera)
     speed = np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)[span]
-    edges = np.quantile(speed, np.linspace(0, 1, bins + 1))
-    quartile = np.clip(np.searchsorted(edges, speed, side="right") - 1, 0, bins - 1)
+    quartile = _quantile_bins(speed, bins)
     true = torch.as_tensor(np.load(folder / "masks.npz")["masks"][span], dtype=torch.float64)
     seen = torch.as_tensor(observation.masks[span], dtype=torch.float64)
     pairs = {"masks": (mask_moments(seen), mask_moments(true)),
