@@ -1,0 +1,90 @@
+"""Replay discover's forward selection from stored ``discover.json`` scores, with tests left out.
+
+Every candidate's scores of every round a run reached are stored (``effects[name][round]``, with
+the tests it failed); forward selection (:func:`torchfit.discover.select_effects`) names each
+round's strongest passing candidate, or reports look-alikes within ``lookalike_margin``. Replaying
+it with some tests ignored says which verdicts those tests decided, exactly while the replay adds
+the names the stored run added: where it adds another (or one more), the stored run never scored
+the next round, and the row says a rerun is needed.
+
+    python experiments/discover/replay_selection.py SUFFIX --drop heldout
+
+``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` of the six sets ('' for
+the default path, ``_albedo1_exposure_fitted`` for the exposure path). Prints the recordings whose
+verdict would change and the count of right verdicts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from torchfit.discover_video import VIDEO_SELECTION
+
+HERE = Path(__file__).resolve().parent
+SETS = ("", "_fresh1", "_fresh2", "_fresh3", "_fresh4", "_fresh5")
+TESTS = ("delta_bic", "unphysical", "evidence_spread", "heldout", "wald")
+
+
+def replay(content: dict, drop: tuple[str, ...] = (), margin: float = VIDEO_SELECTION.lookalike_margin,
+           max_effects: int = 3) -> tuple[list[str], list[str] | None, bool]:
+    """(names, look-alikes or None, exact) of forward selection on a run's stored scores with
+    the tests in ``drop`` ignored; ``exact`` is False where the stored run did not score the
+    round the replay reached (the last name is then the replay's, unconfirmed)."""
+    scores, chain = content["effects"], content.get("verdict_withheld") or content["verdict"]
+    names: list[str] = []
+    while len(names) < max_effects:
+        rnd = len(names)
+        step = {n: rounds[rnd] for n, rounds in scores.items() if n not in names and rnd < len(rounds)}
+        passing = sorted((s["delta_bic"], n) for n, s in step.items() if not set(s["fails"]) - set(drop))
+        if not passing:
+            return names, None, True
+        best, winner = passing[-1]
+        alike = [n for d, n in passing[:-1] if best - d < margin]
+        if alike:
+            return names, [winner, *alike], True
+        if rnd >= len(chain) or chain[rnd] != winner:
+            return names + [winner], None, False
+        names.append(winner)
+    return names, None, True
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("suffix", help="results folder suffix ('' for the default path)")
+    ap.add_argument("--drop", default="", help=f"tests to ignore, comma-separated, among {TESTS}")
+    args = ap.parse_args(argv)
+    drop = tuple(t for t in args.drop.split(",") if t)
+    if set(drop) - set(TESTS):
+        ap.error(f"--drop: unknown tests {sorted(set(drop) - set(TESTS))}; choose among {TESTS}")
+    right_stored = right_replay = rows = reruns = 0
+    for fresh in SETS:
+        folder = HERE / "results" / f"concealed{fresh}{args.suffix}"
+        for path in sorted(folder.glob("*/discover.json")):
+            content = json.loads(path.read_text())
+            truth = sorted(content["truth_effects"] or {})
+            stored = content.get("verdict_withheld") or content["verdict"]
+            names, alike, exact = replay(content)
+            if not exact or names != stored:  # the replay must reproduce the stored selection
+                raise SystemExit(f"{path}: the replay without changes gives {names}, stored {stored}")
+            names, alike, exact = replay(content, drop)
+            rows += 1
+            reported = content["verdict"]  # [] where the verdict was withheld for a poor fit
+            right_stored += (sorted(reported) == truth and not content["indistinguishable"]) if truth else not reported
+            if exact:
+                named = reported if names == stored else names  # the same chain keeps its withholding
+                right_replay += (sorted(named) == truth and not alike) if truth else not (named or alike)
+            else:
+                reruns += 1
+            if names != stored or not exact or (alike and not content["indistinguishable"]):
+                print(f"{fresh or 'first':8s} {path.parent.name:16s} hidden {truth}: stored {stored}, replay {names}"
+                      + (f" (look-alikes {alike})" if alike else "") + ("" if exact else " — needs a rerun"))
+    print(f"{rows} runs: right (hidden effect named alone, or a control quiet) {right_stored} stored; "
+          f"{right_replay} in the replay of the {rows - reruns} it settles, {reruns} need a rerun")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
