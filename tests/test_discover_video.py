@@ -163,7 +163,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
             "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
             f"camera.file={small / 'camera.json'}", f"data.truth={small / 'truth.json'}", "search=quick",
             "params.quick=true", "params.holdout=0.2", "params.edge_px=0.05", "outputs.overlay_video=true",
-            "quiet=true"])
+            "params.heldout_margin=6", "quiet=true"])
     summary = run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
@@ -177,6 +177,8 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     # the per-frame evidence: one chi-squared per criterion frame; with the edge bias's prior term
     # (one observation that is no frame) it is the model's chi-squared
     base = content["models"][0]
+    assert np.isfinite(base["heldout_deviance"]) and base["heldout_deviance"] > 0
+    assert content["settings"]["heldout_margin"] == 6 and tried["heldout_deviance_rise"] is not None
     assert len(base["frame_chi2"]) == len(content["criterion_frames"]) == len(tried["unit_delta_chi2"]) > 8
     edge = base["edge_px"]
     prior = (edge["value"] / EDGE_PRIOR_PX) ** 2 + (edge["ends_minus_sides"] / 2 / EDGE_SHAPE_PRIOR_PX) ** 2
@@ -511,6 +513,14 @@ def test_held_out_fit_sees_no_held_out_frame():
                            getattr(clean.payload["held_model"].cands, field))
     assert moved.payload["held_model"].nuisances == clean.payload["held_model"].nuisances
     assert moved.heldout_rms > clean.heldout_rms  # the moved frames are predicted worse
+    assert moved.heldout_deviance > clean.heldout_deviance
+    # the held-out deviance's residual rows are the held-out frames' whitened channels (the
+    # nuisances' prior rows, which come last, left out)
+    held_model = clean.payload["held_model"]
+    rows, _ = video._jacobian(held_model, held & video.problem.used)
+    frames = len(rows) - len(video.prior_terms(held_model.nuisances))
+    whitened = video.whitened_channels(video.residuals(held_model), video.held)
+    assert torch.allclose(rows[:frames], torch.as_tensor(np.concatenate([whitened[c] for c in dv.CHANNELS])))
 
 
 def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch):
@@ -788,6 +798,10 @@ def test_cli_speed_noise_is_checked_and_recorded(tmp_path):
         cfg = compose(config_name="config", overrides=common + ["params.speed_noise=sometimes"])
     with pytest.raises(ConfigError, match="params.speed_noise must be true or false, got 'sometimes'"):
         run(cfg, tmp_path / "bad")
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common + ["params.heldout_margin=-2"])
+    with pytest.raises(ConfigError, match="heldout_margin must be a deviance >= 0"):
+        run(cfg, tmp_path / "bad_margin")
     with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
         cfg = compose(config_name="config", overrides=common + ["params.speed_noise=true"])
     run(cfg, tmp_path / "good")

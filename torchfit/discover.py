@@ -64,6 +64,7 @@ __all__ = [
     "plot_residuals",
     "select_effects",
     "alone_std",
+    "predictive_deviance",
     "wald_statistic",
     "without_weakest_block",
 ]
@@ -79,6 +80,11 @@ class SelectionSettings:
         heldout_noise: ...or, when set, predict the held-out data within this RMS (in the units of
             ``ModelFit.heldout_rms``; on video, noise floors): a prediction at the noise level
             cannot be shown worse by held-out data, so the relative rule does not veto it.
+        heldout_margin: when set, and the problem gives each fit's held-out predictive deviance
+            (``ModelFit.heldout_deviance``), the held-out test is instead that the candidate's
+            deviance exceeds the model it extends by at most this (2 ln of a Bayes factor against
+            it; 6: "strong" evidence): the held-out error is judged against the prediction's own
+            uncertainty, which an added parameter widens.
         lookalike_margin: a passing candidate whose ΔBIC is within this of the winner's is a
             look-alike: both are reported as indistinguishable and none is added.
         max_effects: most effects added.
@@ -94,6 +100,7 @@ class SelectionSettings:
     min_delta_bic: float = 10.0
     min_heldout_gain: float = 0.02
     heldout_noise: float | None = None
+    heldout_margin: float | None = None
     lookalike_margin: float = 10.0
     max_effects: int = 4
     holdout: float = 0.25
@@ -106,6 +113,8 @@ class SelectionSettings:
             raise ValueError(f"evidence_blocks must be >= 1 (1: off), got {self.evidence_blocks}")
         if self.max_effects < 0:
             raise ValueError(f"max_effects must be >= 0, got {self.max_effects}")
+        if self.heldout_margin is not None and not self.heldout_margin >= 0:
+            raise ValueError(f"heldout_margin must be a deviance >= 0 (or None: off), got {self.heldout_margin}")
 
 
 @dataclass
@@ -120,6 +129,10 @@ class ModelFit:
         params: ``{effect: {parameter: {"value", "std", "unit"}}}`` in physical units.
         fit_rms: RMS residual on all data.
         heldout_rms: RMS prediction error on the held-out part after fitting the rest.
+        heldout_deviance: optional ``r^T S^-1 r + ln det S`` of the held-out part's residuals ``r``
+            (in noise units) under the prediction's covariance ``S`` (noise plus the fit's own
+            parameter uncertainty carried to the held-out part): -2 ln of its predictive density,
+            up to a constant.
         payload: the problem's own (warm start, residuals).
         parts: optional (U,) chi-squared per unit of the data (a video's frames, in order), the
             part of ``rss / noise_var`` each unit contributes: where a candidate's evidence lies.
@@ -138,6 +151,7 @@ class ModelFit:
     payload: Any = None
     parts: np.ndarray | None = None
     wald: dict | None = None
+    heldout_deviance: float | None = None
 
 
 class SelectionProblem(Protocol):
@@ -248,6 +262,22 @@ def wald_statistic(value: torch.Tensor, null: torch.Tensor, cov: torch.Tensor) -
     return float(diff @ torch.linalg.pinv(cov, hermitian=True) @ diff)
 
 
+def predictive_deviance(resid: torch.Tensor, jac: torch.Tensor, cov: torch.Tensor) -> float:
+    """``r^T S^-1 r + ln det S`` with ``S = I + J C J^T``: -2 ln of the Gaussian predictive density
+    of (N,) held-out residuals ``r`` in noise units (up to ``N ln 2 pi``), where ``J`` (N, P) is
+    their Jacobian in the fit's parameters and ``C`` (P, P) those parameters' covariance from the
+    fit that predicted them. Rows with a non-finite residual (a frame out of view) are left out.
+
+    A prediction from more parameters is less certain; its error is judged against that.
+    """
+    good = torch.isfinite(resid)
+    r, j = resid[good].double(), jac[good].double()
+    spread = torch.eye(len(r), dtype=torch.float64, device=r.device) + j @ cov.double() @ j.T
+    factor = torch.linalg.cholesky(spread)
+    white = torch.linalg.solve_triangular(factor, r[:, None], upper=False)[:, 0]
+    return float(white.square().sum() + 2 * factor.diagonal().log().sum())
+
+
 def alone_std(cov: torch.Tensor) -> torch.Tensor:
     """(P,) standard error of each of P parameters of one effect with the effect's others held
     fixed, from their (P, P) covariance (the rest of the model marginalised): ``1 / sqrt((C^+)_ii)``.
@@ -294,8 +324,13 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
             outside = _outside_bounds(name, fit.params.get(name, {}))
             spread = _spread(base, fit, bic_base - bic, settings.evidence_blocks)
-            heldout_ok = gain >= settings.min_heldout_gain or (
-                settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise)
+            deviance = (None if settings.heldout_margin is None or fit.heldout_deviance is None
+                        or base.heldout_deviance is None else fit.heldout_deviance - base.heldout_deviance)
+            if deviance is not None:
+                heldout_ok = deviance <= settings.heldout_margin
+            else:
+                heldout_ok = gain >= settings.min_heldout_gain or (
+                    settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise)
             wald = (fit.wald or {}).get(name)
             wald_bic = None if wald is None else wald - d_k * math.log(max(fit.n_obs, 2))
             fails = [test for test, failed in (
@@ -312,7 +347,9 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "p_value": p_value, "sigma": float(stats.norm.isf(max(p_value, 1e-300))) if p_value < 0.5 else 0.0,
                 "delta_loss": base.rss - fit.rss, "rms_before": base.fit_rms, "rms_after": fit.fit_rms,
                 "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
-                "heldout_gain": gain, "params": fit.params,
+                "heldout_gain": gain, "heldout_deviance_before": base.heldout_deviance,
+                "heldout_deviance_after": fit.heldout_deviance, "heldout_deviance_rise": deviance,
+                "params": fit.params,
                 "unphysical": outside, "wald_chi2": wald, "wald_delta_bic": wald_bic,
                 **spread,
                 "fails": fails, "passes": not fails,
@@ -685,7 +722,11 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
             reasons = []
             if "unphysical" in fails:
                 reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
-            if "heldout" in fails:
+            if "heldout" in fails and score.get("heldout_deviance_rise") is not None:
+                reasons.append(f"it predicts the held-out data worse than its own uncertainty allows ({heldout(score)}; "
+                               f"predictive deviance {score['heldout_deviance_before']:.1f} -> "
+                               f"{score['heldout_deviance_after']:.1f})")
+            elif "heldout" in fails:
                 reasons.append(f"it does not predict the held-out data well enough ({heldout(score)}, "
                                f"{100 * score['heldout_gain']:+.0f} %)")
             if "wald" in fails:

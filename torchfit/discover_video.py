@@ -46,6 +46,7 @@ from .discover import (
     alone_std,
     limits_line,
     not_named_lines,
+    predictive_deviance,
     select_effects,
     verdict_lines,
     wald_statistic,
@@ -920,6 +921,27 @@ class VideoProblem:
                 break
         return [(run.model, run.resid, run.jac) for run in runs]
 
+    def _covariance(self, model: _Model, resid: Tensor, jac: Tensor) -> Tensor:
+        """(P, P) covariance of the model's parameters in the Jacobian's scaled units, from its (N,)
+        residual and (N, P) Jacobian at the optimum: Gauss-Newton, inflated by the reduced
+        chi-squared when it exceeds 1 (held-fixed columns are zero, and so is their variance)."""
+        good = torch.isfinite(resid)
+        j, r = jac[good], resid[good]
+        n, p = len(j), j.shape[1] - int(self._frozen(model).sum())
+        reduced = float(r.square().sum()) / max(n - p, 1)
+        return torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
+
+    def _heldout_deviance(self, held_model: _Model, resid: Tensor, jac: Tensor) -> float:
+        """The held-out frames' predictive deviance (:func:`torchfit.discover.predictive_deviance`)
+        under ``held_model``, fitted on the train frames with (N,) residual ``resid`` and (N, P)
+        Jacobian ``jac`` there: its parameter covariance carried to the held-out frames' whitened
+        residuals (their AR(1) chain starts afresh at the first held-out frame)."""
+        cov = self._covariance(held_model, resid, jac)
+        held = torch.as_tensor(self.held, device=self.problem.masks.device) & self.problem.used
+        held_resid, held_jac = self._jacobian(held_model, held)
+        frames = len(held_resid) - len(self.prior_terms(held_model.nuisances))  # the prior rows come last
+        return predictive_deviance(held_resid[:frames], held_jac[:frames], cov)
+
     def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, ...], dict]:
         """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
         :func:`torchfit.discover.alone_std` the second), of the nuisances (the edge bias's two
@@ -927,11 +949,7 @@ class VideoProblem:
         each effect's Wald statistic against its null values
         (:func:`torchfit.discover.wald_statistic`): Gauss-Newton at the optimum, inflated by the
         reduced chi-squared when it exceeds 1."""
-        good = torch.isfinite(resid)
-        j, r = jac[good], resid[good]
-        n, p = len(j), j.shape[1] - int(self._frozen(model).sum())  # held-fixed columns are zero
-        reduced = float(r.square().sum()) / max(n - p, 1)
-        cov = torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
+        cov = self._covariance(model, resid, jac)
         std = cov.diagonal().clamp(min=0).sqrt()[14:]
         out, wald, offset = {}, {}, 0
         for name, params in model.values.items():
@@ -969,7 +987,7 @@ class VideoProblem:
         return params
 
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict],
-               held_model: _Model) -> ModelFit:
+               held_model: _Model, held_deviance: float | None = None) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
         whitened = self.whitened_channels(channels, used)
@@ -997,7 +1015,7 @@ class VideoProblem:
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
-                        parts=per_frame, wald=std[2])
+                        parts=per_frame, wald=std[2], heldout_deviance=held_deviance)
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
@@ -1049,7 +1067,7 @@ class VideoProblem:
             if len(ended) > 1:
                 self.say(f"  baseline from {len(ended)} search candidates: chi2 "
                          + ", ".join(f"{self._cost(run[1]):.1f}" for run in ended))
-            held_model, _, _ = self._lm(model, self.train, self.iterations)
+            held_model, held_resid, held_jac = self._lm(model, self.train, self.iterations)
         else:
             new = tuple(name for name in effects if name not in warm.payload["model"].values)
             _, screened = self._screen(self._extend(warm.payload["model"], effects), new, everything)
@@ -1058,8 +1076,9 @@ class VideoProblem:
             # from the warm held-out fit, on the train frames alone (a start chosen on all
             # frames could stall in another basin than the train frames' best, and did)
             _, held_screened = self._screen(self._extend(warm.payload["held_model"], effects), new, self.train)
-            held_model, _, _ = self._lm(held_screened, self.train, self.iterations)
-        out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model)
+            held_model, held_resid, held_jac = self._lm(held_screened, self.train, self.iterations)
+        out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model,
+                          self._heldout_deviance(held_model, held_resid, held_jac))
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
                  f"{time.perf_counter() - clock:.0f} s")
@@ -1298,7 +1317,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "baseline_starts": baseline_starts,
         "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if point_spread is not None else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
-                    "heldout_rms": f.heldout_rms, "heldout_centroid_px": f.payload["heldout_centroid_px"],
+                    "heldout_rms": f.heldout_rms, "heldout_deviance": f.heldout_deviance,
+                    "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],

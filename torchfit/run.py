@@ -391,7 +391,7 @@ def run_points(cfg: DictConfig, out_dir: Path, *, discover: bool) -> dict:
         candidates = [c for c in candidates if c in ("quadratic_drag", "magnus")]
     try:
         rules = discovery.SelectionSettings(**settings)
-    except TypeError as err:
+    except (TypeError, ValueError) as err:
         raise ConfigError(f"params: {err}") from None
     ctx["progress"](f"points: {int(data.weights.sum())} samples from {cfg.data.points}")
     summary = discovery.discover_points(data, candidates=candidates, settings=rules, out_dir=out_dir,
@@ -431,7 +431,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                           f"choose from {list(VIDEO_EFFECTS)}")
     try:
         rules = discovery.SelectionSettings(**settings)
-    except TypeError as err:
+    except (TypeError, ValueError) as err:
         raise ConfigError(f"params: {err}") from None
     data = cfg.data
     if data.fps is not None and not float(data.fps) > 0:
