@@ -617,3 +617,25 @@ def test_blur_speed_bands_reach_as_far_as_named():
     assert np.array_equal(wide, diag._band(mask, "px", 4))
     swept = diag._band(mask, "steps and half the travel along it", 3, velocity=np.array([4.0, 0.0]))
     assert swept.sum() == 25 + 4 * 7 and swept[10, 15] and not swept[10, 16] and not swept[14, 10]
+
+
+def test_replay_selection_reruns_forward_selection_from_stored_scores():
+    """Two rounds stored: the clock named, then nothing. The replay reproduces it; with the
+    held-out test decided by the RMS rule the clock (held-out 10 % worse, 2.4 floors) is vetoed,
+    and the drag it would name instead was never scored after the clock: not exact."""
+    replay = _load("replay_selection", CONCEALED.parent / "replay_selection.py")
+
+    def score(bic, fails, gain=0.0, after=1.0, rise=0.0):
+        return {"delta_bic": bic, "fails": fails, "heldout_gain": gain, "heldout_rms_after": after,
+                "heldout_deviance_rise": rise}
+
+    content = {"verdict": ["time_scale"], "effects": {
+        "time_scale": [score(60.0, [], gain=-0.10, after=2.4, rise=2.0)],
+        "quadratic_drag": [score(30.0, []), score(4.0, ["delta_bic"])]}}
+    assert replay.replay(content) == (["time_scale"], None, True)
+    assert replay.replay(content, heldout=replay.rms_rule) == (["quadratic_drag"], None, False)
+    assert replay.replay(content, heldout=replay.deviance_rule(1.0)) == (["quadratic_drag"], None, False)
+    assert replay.replay(content, heldout=replay.deviance_rule(6.0)) == (["time_scale"], None, True)
+    # a look-alike within the margin stops the replay with both reported
+    content["effects"]["quadratic_drag"][0]["delta_bic"] = 55.0
+    assert replay.replay(content) == ([], ["time_scale", "quadratic_drag"], True)

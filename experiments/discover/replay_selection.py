@@ -8,6 +8,7 @@ the names the stored run added: where it adds another (or one more), the stored 
 the next round, and the row says a rerun is needed.
 
     python experiments/discover/replay_selection.py SUFFIX --drop heldout
+    python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` of the six sets ('' for
 the default path, ``_albedo1_exposure_fitted`` for the exposure path). Prints the recordings whose
@@ -19,8 +20,10 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
+from torchfit.discover import SelectionSettings
 from torchfit.discover_video import VIDEO_SELECTION
 
 HERE = Path(__file__).resolve().parent
@@ -28,17 +31,37 @@ SETS = ("", "_fresh1", "_fresh2", "_fresh3", "_fresh4", "_fresh5")
 TESTS = ("delta_bic", "unphysical", "evidence_spread", "heldout", "wald")
 
 
-def replay(content: dict, drop: tuple[str, ...] = (), margin: float = VIDEO_SELECTION.lookalike_margin,
+def rms_rule(score: dict, rules: SelectionSettings = VIDEO_SELECTION) -> bool:
+    """Whether a candidate passes the held-out RMS rule (``min_heldout_gain``, ``heldout_noise``)."""
+    return score["heldout_gain"] >= rules.min_heldout_gain or (
+        rules.heldout_noise is not None and score["heldout_rms_after"] <= rules.heldout_noise)
+
+
+def deviance_rule(margin: float) -> Callable[[dict], bool]:
+    """The held-out deviance rule with this margin (runs that stored the deviance)."""
+    return lambda score: score["heldout_deviance_rise"] <= margin
+
+
+def replay(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], bool] | None = None,
+           margin: float = VIDEO_SELECTION.lookalike_margin,
            max_effects: int = 3) -> tuple[list[str], list[str] | None, bool]:
     """(names, look-alikes or None, exact) of forward selection on a run's stored scores with
-    the tests in ``drop`` ignored; ``exact`` is False where the stored run did not score the
-    round the replay reached (the last name is then the replay's, unconfirmed)."""
+    the tests in ``drop`` ignored and, when ``heldout`` is given, the held-out test decided by it
+    (score -> passes); ``exact`` is False where the stored run did not score the round the replay
+    reached (the last name is then the replay's, unconfirmed)."""
+
+    def fails(score: dict) -> set[str]:
+        out = set(score["fails"]) - set(drop)
+        if heldout is not None and "heldout" not in drop:
+            out = (out - {"heldout"}) | (set() if heldout(score) else {"heldout"})
+        return out
+
     scores, chain = content["effects"], content.get("verdict_withheld") or content["verdict"]
     names: list[str] = []
     while len(names) < max_effects:
         rnd = len(names)
         step = {n: rounds[rnd] for n, rounds in scores.items() if n not in names and rnd < len(rounds)}
-        passing = sorted((s["delta_bic"], n) for n, s in step.items() if not set(s["fails"]) - set(drop))
+        passing = sorted((s["delta_bic"], n) for n, s in step.items() if not fails(s))
         if not passing:
             return names, None, True
         best, winner = passing[-1]
@@ -55,7 +78,12 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("suffix", help="results folder suffix ('' for the default path)")
     ap.add_argument("--drop", default="", help=f"tests to ignore, comma-separated, among {TESTS}")
+    ap.add_argument("--heldout-rule", choices=("rms", "deviance"),
+                    help="decide the held-out test by the RMS rule (VIDEO_SELECTION's) or by the predictive "
+                         "deviance within --margin (runs that stored it)")
+    ap.add_argument("--margin", type=float, default=6.0, help="the deviance rule's margin (default 6)")
     args = ap.parse_args(argv)
+    heldout = {"rms": rms_rule, "deviance": deviance_rule(args.margin), None: None}[args.heldout_rule]
     drop = tuple(t for t in args.drop.split(",") if t)
     if set(drop) - set(TESTS):
         ap.error(f"--drop: unknown tests {sorted(set(drop) - set(TESTS))}; choose among {TESTS}")
@@ -69,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
             names, alike, exact = replay(content)
             if not exact or names != stored:  # the replay must reproduce the stored selection
                 raise SystemExit(f"{path}: the replay without changes gives {names}, stored {stored}")
-            names, alike, exact = replay(content, drop)
+            names, alike, exact = replay(content, drop, heldout)
             rows += 1
             reported = content["verdict"]  # [] where the verdict was withheld for a poor fit
             right_stored += (sorted(reported) == truth and not content["indistinguishable"]) if truth else not reported
