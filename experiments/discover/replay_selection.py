@@ -1,4 +1,4 @@
-"""Replay discover's forward selection from stored ``discover.json`` scores, with tests left out.
+"""Replay discover's forward selection from stored ``discover.json`` scores, with tests left out or decided otherwise.
 
 Every candidate's scores of every round a run reached are stored (``effects[name][round]``, with
 the tests it failed); forward selection (:func:`torchfit.discover.select_effects`) names each
@@ -7,12 +7,15 @@ it with some tests ignored says which verdicts those tests decided, exactly whil
 the names the stored run added: where it adds another (or one more), the stored run never scored
 the next round, and the row says a rerun is needed.
 
+Prints the recordings whose verdict the replay changes, then per set the verdicts as run and as
+replayed: right names (the hidden effect named alone), controls quiet, runs with a name that is
+not hidden.
+
     python experiments/discover/replay_selection.py SUFFIX --drop heldout
     python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` of the six sets ('' for
-the default path, ``_albedo1_exposure_fitted`` for the exposure path). Prints the recordings whose
-verdict would change and the count of right verdicts.
+the default path, ``_albedo1_exposure_fitted`` for the exposure path).
 """
 
 from __future__ import annotations
@@ -87,7 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     drop = tuple(t for t in args.drop.split(",") if t)
     if set(drop) - set(TESTS):
         ap.error(f"--drop: unknown tests {sorted(set(drop) - set(TESTS))}; choose among {TESTS}")
-    right_stored = right_replay = rows = reruns = 0
+    tally = {}  # set -> {"stored" | "replay": [right effects, effect cases, controls quiet, controls, wrong]}
+    unsettled = 0
     for fresh in SETS:
         folder = HERE / "results" / f"concealed{fresh}{args.suffix}"
         for path in sorted(folder.glob("*/discover.json")):
@@ -98,19 +102,37 @@ def main(argv: list[str] | None = None) -> int:
             if not exact or names != stored:  # the replay must reproduce the stored selection
                 raise SystemExit(f"{path}: the replay without changes gives {names}, stored {stored}")
             names, alike, exact = replay(content, drop, heldout)
-            rows += 1
-            reported = content["verdict"]  # [] where the verdict was withheld for a poor fit
-            right_stored += (sorted(reported) == truth and not content["indistinguishable"]) if truth else not reported
-            if exact:
-                named = reported if names == stored else names  # the same chain keeps its withholding
-                right_replay += (sorted(named) == truth and not alike) if truth else not (named or alike)
-            else:
-                reruns += 1
             if names != stored or not exact or (alike and not content["indistinguishable"]):
                 print(f"{fresh or 'first':8s} {path.parent.name:16s} hidden {truth}: stored {stored}, replay {names}"
                       + (f" (look-alikes {alike})" if alike else "") + ("" if exact else " — needs a rerun"))
-    print(f"{rows} runs: right (hidden effect named alone, or a control quiet) {right_stored} stored; "
-          f"{right_replay} in the replay of the {rows - reruns} it settles, {reruns} need a rerun")
+            counts = tally.setdefault(fresh.replace("_fresh", "fresh ") or "first", {"stored": [0] * 5, "replay": [0] * 5})
+            # the stored verdict as reported ([] where withheld for a poor fit); the replay keeps the
+            # withholding where its names are the stored ones
+            replayed = content["verdict"] if names == stored else names
+            for key, named, ties, settled in (("stored", content["verdict"], content["indistinguishable"], True),
+                                              ("replay", replayed, alike, exact)):
+                if not settled:
+                    unsettled += key == "replay"
+                    continue
+                row = counts[key]
+                if truth:
+                    row[0] += sorted(named) == truth and not ties
+                    row[1] += 1
+                else:
+                    row[2] += not (named or ties)
+                    row[3] += 1
+                row[4] += bool(set(named) - set(truth))
+    lines = ["| set | verdicts | right | controls quiet | runs with a wrong name |", "|---|---|---|---|---|"]
+    total = {"stored": [0] * 5, "replay": [0] * 5}
+    for name, counts in [*tally.items(), ("**all**", total)]:
+        for key in ("stored", "replay"):
+            row = counts[key]
+            if name != "**all**":
+                total[key] = [a + b for a, b in zip(total[key], row)]
+            label = "as run" if key == "stored" else "replayed"
+            lines.append(f"| {name} | {label} | {row[0]} of {row[1]} | {row[2]} of {row[3]} | {row[4]} |")
+    print("\n".join(lines))
+    print(f"{unsettled} replayed runs need a rerun (left out of the replay's counts)")
     return 0
 
 
