@@ -1,4 +1,4 @@
-"""Replay discover's forward selection from stored ``discover.json`` scores, with tests left out or decided otherwise.
+"""Replay discover's forward selection from stored scores, tests left out or decided otherwise.
 
 Every candidate's scores of every round a run reached are stored (``effects[name][round]``, with
 the tests it failed); forward selection (:func:`torchfit.discover.select_effects`) names each
