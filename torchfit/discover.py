@@ -723,7 +723,8 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
             if "unphysical" in fails:
                 reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
             if "heldout" in fails and score.get("heldout_deviance_rise") is not None:
-                reasons.append(f"it predicts the held-out data worse than its own uncertainty allows ({heldout(score)}; "
+                reasons.append("it predicts the held-out data worse than its own uncertainty allows "
+                               f"({heldout(score)}; "
                                f"predictive deviance {score['heldout_deviance_before']:.1f} -> "
                                f"{score['heldout_deviance_after']:.1f})")
             elif "heldout" in fails:

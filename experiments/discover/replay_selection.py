@@ -105,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
             if names != stored or not exact or (alike and not content["indistinguishable"]):
                 print(f"{fresh or 'first':8s} {path.parent.name:16s} hidden {truth}: stored {stored}, replay {names}"
                       + (f" (look-alikes {alike})" if alike else "") + ("" if exact else " — needs a rerun"))
-            counts = tally.setdefault(fresh.replace("_fresh", "fresh ") or "first", {"stored": [0] * 5, "replay": [0] * 5})
+            label = fresh.replace("_fresh", "fresh ") or "first"
+            counts = tally.setdefault(label, {"stored": [0] * 5, "replay": [0] * 5})
             # the stored verdict as reported ([] where withheld for a poor fit); the replay keeps the
             # withholding where its names are the stored ones
             replayed = content["verdict"] if names == stored else names
