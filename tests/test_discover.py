@@ -312,6 +312,11 @@ def test_predictive_deviance_is_the_gaussian_predictive_density():
     gap = torch.cat((r[:2], torch.tensor([float("nan")], dtype=torch.float64), r[2:]))
     gap_j = torch.cat((j[:2], torch.zeros(1, 3, dtype=torch.float64), j[2:]))
     assert predictive_deviance(gap, gap_j, cov) == pytest.approx(direct, rel=1e-12)
+    from torchfit.discover import predictive_terms
+
+    error, spread_cost = predictive_terms(r, j, cov)
+    assert error == pytest.approx(float(r @ torch.linalg.solve(s, r)), rel=1e-12)
+    assert spread_cost == pytest.approx(float(torch.logdet(s)), rel=1e-12) and spread_cost > 0
 
 
 def _line_fits(c: float, seed: int):

@@ -177,7 +177,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     # the per-frame evidence: one chi-squared per criterion frame; with the edge bias's prior term
     # (one observation that is no frame) it is the model's chi-squared
     base = content["models"][0]
-    assert np.isfinite(base["heldout_deviance"]) and base["heldout_deviance"] > 0
+    assert np.isfinite(base["heldout_deviance"]) and base["heldout_deviance"] > base["heldout_logdet"] > 0
     assert content["settings"]["heldout_margin"] == 6 and tried["heldout_deviance_rise"] is not None
     assert len(base["frame_chi2"]) == len(content["criterion_frames"]) == len(tried["unit_delta_chi2"]) > 8
     edge = base["edge_px"]

@@ -65,6 +65,7 @@ __all__ = [
     "select_effects",
     "alone_std",
     "predictive_deviance",
+    "predictive_terms",
     "wald_statistic",
     "without_weakest_block",
 ]
@@ -133,6 +134,8 @@ class ModelFit:
             (in noise units) under the prediction's covariance ``S`` (noise plus the fit's own
             parameter uncertainty carried to the held-out part): -2 ln of its predictive density,
             up to a constant.
+        heldout_logdet: optional ``ln det S``, the part of ``heldout_deviance`` that is the
+            prediction's spread (the rest is its error against that spread).
         payload: the problem's own (warm start, residuals).
         parts: optional (U,) chi-squared per unit of the data (a video's frames, in order), the
             part of ``rss / noise_var`` each unit contributes: where a candidate's evidence lies.
@@ -152,6 +155,7 @@ class ModelFit:
     parts: np.ndarray | None = None
     wald: dict | None = None
     heldout_deviance: float | None = None
+    heldout_logdet: float | None = None
 
 
 class SelectionProblem(Protocol):
@@ -262,20 +266,25 @@ def wald_statistic(value: torch.Tensor, null: torch.Tensor, cov: torch.Tensor) -
     return float(diff @ torch.linalg.pinv(cov, hermitian=True) @ diff)
 
 
-def predictive_deviance(resid: torch.Tensor, jac: torch.Tensor, cov: torch.Tensor) -> float:
-    """``r^T S^-1 r + ln det S`` with ``S = I + J C J^T``: -2 ln of the Gaussian predictive density
-    of (N,) held-out residuals ``r`` in noise units (up to ``N ln 2 pi``), where ``J`` (N, P) is
-    their Jacobian in the fit's parameters and ``C`` (P, P) those parameters' covariance from the
-    fit that predicted them. Rows with a non-finite residual (a frame out of view) are left out.
-
-    A prediction from more parameters is less certain; its error is judged against that.
+def predictive_terms(resid: torch.Tensor, jac: torch.Tensor, cov: torch.Tensor) -> tuple[float, float]:
+    """``(r^T S^-1 r, ln det S)`` with ``S = I + J C J^T``, the two terms of -2 ln the Gaussian
+    predictive density of (N,) held-out residuals ``r`` in noise units (up to ``N ln 2 pi``), where
+    ``J`` (N, P) is their Jacobian in the fit's parameters and ``C`` (P, P) those parameters'
+    covariance from the fit that predicted them: the error against the prediction's spread, and
+    the spread's own cost. Rows with a non-finite residual (a frame out of view) are left out.
     """
     good = torch.isfinite(resid)
     r, j = resid[good].double(), jac[good].double()
     spread = torch.eye(len(r), dtype=torch.float64, device=r.device) + j @ cov.double() @ j.T
     factor = torch.linalg.cholesky(spread)
     white = torch.linalg.solve_triangular(factor, r[:, None], upper=False)[:, 0]
-    return float(white.square().sum() + 2 * factor.diagonal().log().sum())
+    return float(white.square().sum()), float(2 * factor.diagonal().log().sum())
+
+
+def predictive_deviance(resid: torch.Tensor, jac: torch.Tensor, cov: torch.Tensor) -> float:
+    """``r^T S^-1 r + ln det S`` (:func:`predictive_terms`): -2 ln the predictive density. A
+    prediction from more parameters is less certain; its error is judged against that."""
+    return sum(predictive_terms(resid, jac, cov))
 
 
 def alone_std(cov: torch.Tensor) -> torch.Tensor:
@@ -349,6 +358,7 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_rms_before": base.heldout_rms, "heldout_rms_after": fit.heldout_rms,
                 "heldout_gain": gain, "heldout_deviance_before": base.heldout_deviance,
                 "heldout_deviance_after": fit.heldout_deviance, "heldout_deviance_rise": deviance,
+                "heldout_logdet_before": base.heldout_logdet, "heldout_logdet_after": fit.heldout_logdet,
                 "params": fit.params,
                 "unphysical": outside, "wald_chi2": wald, "wald_delta_bic": wald_bic,
                 **spread,

@@ -46,7 +46,7 @@ from .discover import (
     alone_std,
     limits_line,
     not_named_lines,
-    predictive_deviance,
+    predictive_terms,
     select_effects,
     verdict_lines,
     wald_statistic,
@@ -931,8 +931,8 @@ class VideoProblem:
         reduced = float(r.square().sum()) / max(n - p, 1)
         return torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
 
-    def _heldout_deviance(self, held_model: _Model, resid: Tensor, jac: Tensor) -> float:
-        """The held-out frames' predictive deviance (:func:`torchfit.discover.predictive_deviance`)
+    def _heldout_terms(self, held_model: _Model, resid: Tensor, jac: Tensor) -> tuple[float, float]:
+        """The held-out frames' predictive deviance's two terms (:func:`torchfit.discover.predictive_terms`)
         under ``held_model``, fitted on the train frames with (N,) residual ``resid`` and (N, P)
         Jacobian ``jac`` there: its parameter covariance carried to the held-out frames' whitened
         residuals (their AR(1) chain starts afresh at the first held-out frame)."""
@@ -940,7 +940,7 @@ class VideoProblem:
         held = torch.as_tensor(self.held, device=self.problem.masks.device) & self.problem.used
         held_resid, held_jac = self._jacobian(held_model, held)
         frames = len(held_resid) - len(self.prior_terms(held_model.nuisances))  # the prior rows come last
-        return predictive_deviance(held_resid[:frames], held_jac[:frames], cov)
+        return predictive_terms(held_resid[:frames], held_jac[:frames], cov)
 
     def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, ...], dict]:
         """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
@@ -987,7 +987,7 @@ class VideoProblem:
         return params
 
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict],
-               held_model: _Model, held_deviance: float | None = None) -> ModelFit:
+               held_model: _Model, held_terms: tuple[float, float] | None = None) -> ModelFit:
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
         whitened = self.whitened_channels(channels, used)
@@ -1015,7 +1015,9 @@ class VideoProblem:
                                  "held_channels": held_channels,
                                  "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
-                        parts=per_frame, wald=std[2], heldout_deviance=held_deviance)
+                        parts=per_frame, wald=std[2],
+                        heldout_deviance=None if held_terms is None else sum(held_terms),
+                        heldout_logdet=None if held_terms is None else held_terms[1])
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
@@ -1078,7 +1080,7 @@ class VideoProblem:
             _, held_screened = self._screen(self._extend(warm.payload["held_model"], effects), new, self.train)
             held_model, held_resid, held_jac = self._lm(held_screened, self.train, self.iterations)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model,
-                          self._heldout_deviance(held_model, held_resid, held_jac))
+                          self._heldout_terms(held_model, held_resid, held_jac))
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
                  f"{time.perf_counter() - clock:.0f} s")
@@ -1318,6 +1320,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if point_spread is not None else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_deviance": f.heldout_deviance,
+                    "heldout_logdet": f.heldout_logdet,
                     "heldout_centroid_px": f.payload["heldout_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
