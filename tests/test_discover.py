@@ -386,6 +386,6 @@ def test_a_held_out_margin_judges_the_prediction_by_its_deviance():
     score = vetoed.steps[0].scores["time_scale"]
     assert score["fails"] == ["heldout"] and score["heldout_deviance_rise"] == pytest.approx(8.0)
     line = not_named_lines(vetoed, lambda s: "2.00 -> 2.40", lambda s: "")[0]
-    assert "predictive deviance 40.0 -> 48.0" in line
+    assert "held-out predictive deviance rises by 8.0" in line and "deviance 40.0 -> 48.0" in line
     with pytest.raises(ValueError, match="heldout_margin"):
         SelectionSettings(heldout_margin=-1.0)
