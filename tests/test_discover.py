@@ -299,7 +299,10 @@ def test_alone_std_is_the_error_of_a_parameter_fitted_with_its_effects_others_fi
 def test_predictive_deviance_is_the_gaussian_predictive_density():
     """``r^T S^-1 r + ln det S``, ``S = I + J C J^T``, against a direct computation; with no
     parameter uncertainty it is the plain chi-squared; a row out of view is left out."""
-    from torchfit.discover import predictive_deviance
+    from torchfit.discover import predictive_terms
+
+    def predictive_deviance(*args):
+        return sum(predictive_terms(*args))
 
     gen = torch.Generator().manual_seed(3)
     r, j = torch.randn(7, generator=gen, dtype=torch.float64), torch.randn(7, 3, generator=gen, dtype=torch.float64)
@@ -312,8 +315,6 @@ def test_predictive_deviance_is_the_gaussian_predictive_density():
     gap = torch.cat((r[:2], torch.tensor([float("nan")], dtype=torch.float64), r[2:]))
     gap_j = torch.cat((j[:2], torch.zeros(1, 3, dtype=torch.float64), j[2:]))
     assert predictive_deviance(gap, gap_j, cov) == pytest.approx(direct, rel=1e-12)
-    from torchfit.discover import predictive_terms
-
     error, spread_cost = predictive_terms(r, j, cov)
     assert error == pytest.approx(float(r @ torch.linalg.solve(s, r)), rel=1e-12)
     assert spread_cost == pytest.approx(float(torch.logdet(s)), rel=1e-12) and spread_cost > 0
@@ -322,8 +323,8 @@ def test_predictive_deviance_is_the_gaussian_predictive_density():
 def _line_fits(c: float, seed: int):
     """A straight line plus ``c t^2`` plus unit noise at 44 times in [0, 1]: the line and the
     parabola fitted on the first three quarters by least squares; each one's held-out RMS and
-    predictive deviance (:func:`torchfit.discover.predictive_deviance`) on the last quarter."""
-    from torchfit.discover import predictive_deviance
+    predictive deviance (:func:`torchfit.discover.predictive_terms`, summed) on the last quarter."""
+    from torchfit.discover import predictive_terms
 
     t = np.linspace(0.0, 1.0, 44)
     train = t < 0.75
@@ -335,7 +336,7 @@ def _line_fits(c: float, seed: int):
         cov = np.linalg.inv(design[train].T @ design[train]) * max(fit_resid @ fit_resid / (train.sum() - design.shape[1]), 1)
         held = y[~train] - design[~train] @ beta  # the residual's Jacobian is -design
         out.append((float(np.sqrt(np.mean(held**2))),
-                    predictive_deviance(torch.tensor(held), torch.tensor(-design[~train]), torch.tensor(cov)),
+                    sum(predictive_terms(torch.tensor(held), torch.tensor(-design[~train]), torch.tensor(cov))),
                     held, design[~train], cov))
     return out
 

@@ -64,7 +64,6 @@ __all__ = [
     "plot_residuals",
     "select_effects",
     "alone_std",
-    "predictive_deviance",
     "predictive_terms",
     "wald_statistic",
     "without_weakest_block",
@@ -130,7 +129,8 @@ class ModelFit:
         params: ``{effect: {parameter: {"value", "std", "unit"}}}`` in physical units.
         fit_rms: RMS residual on all data.
         heldout_rms: RMS prediction error on the held-out part after fitting the rest.
-        heldout_deviance: optional ``r^T S^-1 r + ln det S`` of the held-out part's residuals ``r``
+        heldout_deviance: optional ``r^T S^-1 r + ln det S`` (:func:`predictive_terms`, summed) of
+            the held-out part's residuals ``r``
             (in noise units) under the prediction's covariance ``S`` (noise plus the fit's own
             parameter uncertainty carried to the held-out part): -2 ln of its predictive density,
             up to a constant.
@@ -279,12 +279,6 @@ def predictive_terms(resid: torch.Tensor, jac: torch.Tensor, cov: torch.Tensor) 
     factor = torch.linalg.cholesky(spread)
     white = torch.linalg.solve_triangular(factor, r[:, None], upper=False)[:, 0]
     return float(white.square().sum()), float(2 * factor.diagonal().log().sum())
-
-
-def predictive_deviance(resid: torch.Tensor, jac: torch.Tensor, cov: torch.Tensor) -> float:
-    """``r^T S^-1 r + ln det S`` (:func:`predictive_terms`): -2 ln the predictive density. A
-    prediction from more parameters is less certain; its error is judged against that."""
-    return sum(predictive_terms(resid, jac, cov))
 
 
 def alone_std(cov: torch.Tensor) -> torch.Tensor:
