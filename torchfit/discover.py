@@ -84,7 +84,9 @@ class SelectionSettings:
             (``ModelFit.heldout_deviance``), the held-out test is instead that the candidate's
             deviance exceeds the model it extends by at most this (2 ln of a Bayes factor against
             it; 6: "strong" evidence): the held-out error is judged against the prediction's own
-            uncertainty, which an added parameter widens.
+            uncertainty, which an added parameter widens. Off by default: on the concealed video it
+            named five right effects the RMS rule vetoes, and a lens on a control (HISTORY.md,
+            twenty-first session).
         lookalike_margin: a passing candidate whose ΔBIC is within this of the winner's is a
             look-alike: both are reported as indistinguishable and none is added.
         max_effects: most effects added.
