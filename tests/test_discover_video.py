@@ -492,7 +492,7 @@ def test_held_out_fit_sees_no_held_out_frame():
     import torchfit.discover_video as dv
 
     problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
-    video = dv.VideoProblem(problem, candidates=("time_scale",))
+    video = dv.VideoProblem(problem, candidates=("time_scale",), heldout_deviance=True)
     base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
     video._set_noise(base)
     warm = SimpleNamespace(payload={"model": base, "held_model": base})

@@ -466,6 +466,10 @@ class VideoProblem:
             experiments/discover/diagnose.py error-speed), and a floor the same on every frame
             gives the fast frames' errors the weight of evidence. Off: the same floor on every
             frame (the default).
+        heldout_deviance: also give each fit its held-out predictive deviance
+            (``ModelFit.heldout_deviance``, ``heldout_logdet``), which
+            ``SelectionSettings.heldout_margin`` decides by; one more Jacobian per fit, so only
+            when asked.
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -481,7 +485,8 @@ class VideoProblem:
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
-                 speed_noise: bool = False, progress: Callable[[str], None] | None = None):
+                 speed_noise: bool = False, heldout_deviance: bool = False,
+                 progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -539,6 +544,7 @@ class VideoProblem:
         self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.speed_noise = speed_noise
+        self.heldout_deviance = heldout_deviance
         # speed_noise: (T,) each frame's floor over the channel's, growing with the speed (set by
         # the baseline fit; None: the same floor on every frame), and the share of the noise that
         # grows with the speed
@@ -1080,7 +1086,7 @@ class VideoProblem:
             _, held_screened = self._screen(self._extend(warm.payload["held_model"], effects), new, self.train)
             held_model, held_resid, held_jac = self._lm(held_screened, self.train, self.iterations)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model,
-                          self._heldout_terms(held_model, held_resid, held_jac))
+                          self._heldout_terms(held_model, held_resid, held_jac) if self.heldout_deviance else None)
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
                  f"{time.perf_counter() - clock:.0f} s")
@@ -1286,7 +1292,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
                          fit_exposure=fit_exposure, point_spread=point_spread,
-                         baseline_starts=baseline_starts, speed_noise=speed_noise, progress=say)
+                         baseline_starts=baseline_starts, speed_noise=speed_noise,
+                         heldout_deviance=settings.heldout_margin is not None, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
