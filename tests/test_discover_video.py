@@ -11,6 +11,7 @@ from torchfit.camera import Camera
 from torchfit.discover_video import EDGE_PRIOR_PX, EDGE_SHAPE_PRIOR_PX
 from torchfit.dynamics import RigidBody, simulate
 from torchfit.effects import LensDistortion, make_effect
+from torchfit.provenance import file_digest
 from torchfit.render import RenderMesh, full_window, render_silhouettes
 from torchfit.rotation import axis_angle_to_quat
 from torchfit.search import Candidates, Problem, candidate_losses, refine
@@ -186,6 +187,10 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     edge = content["models"][0]["edge_px"]
     assert abs(edge["value"]) < 1.0 and edge["std"] > 0
     assert "edge bias" in (tmp_path / "report.txt").read_text()
+    # what the run was made from: the video's bytes (the file's own digest) and the libraries
+    made = content["provenance"]
+    assert made["source_sha256"] == file_digest(small / "video.mp4") and len(made["masks_sha256"]) == 64
+    assert made["packages"]["torch"] == torch.__version__
     for name in ("residuals.png", "report.txt", "overlay_discover.mp4"):
         assert (tmp_path / name).stat().st_size > 0
 

@@ -13,6 +13,7 @@ import trimesh
 from hydra import compose, initialize_config_module
 from hydra.errors import ConfigCompositionException
 
+from torchfit.provenance import file_digest
 from torchfit.run import run
 
 SMALL = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
@@ -55,6 +56,7 @@ def test_fit_small_recording_end_to_end(tmp_path):
     np.testing.assert_allclose(np.asarray(params["R"]) @ np.asarray(params["R"]).T, np.eye(3), atol=1e-6)
     per_frame = result["per_frame"]
     assert len(per_frame["frame"]) == 12 and per_frame["time"][0] == 0.0
+    assert result["provenance"]["source_sha256"] == file_digest(SMALL / "video.mp4")
     for name in ("iou.png", "loss.png", "overlay.mp4", "contact_sheet.png"):
         assert (tmp_path / name).stat().st_size > 0
     # the quick search on the 320x240 tshape_small clip: orientation found, silhouettes overlap well

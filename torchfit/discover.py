@@ -48,6 +48,7 @@ from .points import (
     ballistic_start,
     fit_tracks,
 )
+from .provenance import provenance
 from .residuals import channel_trend
 
 __all__ = [
@@ -815,6 +816,7 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         "settings": asdict(settings),
         "candidates": list(problem.candidates),
         "seconds": time.perf_counter() - clock,
+        "provenance": provenance(),
     }
     content = _jsonable(content)
     if out_dir is not None:

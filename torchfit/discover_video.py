@@ -54,6 +54,7 @@ from .discover import (
 from .dynamics import RigidBody
 from .effects import EFFECTS, Effect, make_effect, revealed
 from .losses import central_moments, mask_moments
+from .provenance import provenance
 from .render import RenderMesh, crop_windows, full_window, render_silhouettes, silhouette_moments
 from .residuals import (
     CHANNELS,
@@ -1338,6 +1339,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "settings": asdict(settings),
         "candidates": list(video.candidates),
         "seconds": time.perf_counter() - clock,
+        "provenance": provenance(observation.source, observation.masks),
     }
     if truth is not None:
         content["truth_effects"] = truth.get("effects", {})

@@ -15,6 +15,7 @@ import torch
 
 from .camera import Camera, tilt_roll_from_direction
 from .dynamics import integrate
+from .provenance import provenance
 from .render import full_window, render_silhouettes
 from .rotation import matrix_to_quat, quat_to_matrix, rotation_angle
 from .search import FitResult, Problem
@@ -112,6 +113,7 @@ def write_outputs(out_dir: Path, result: FitResult, problem: Problem, observatio
         "camera": {k: getattr(camera, k) for k in ("fx", "fy", "cx", "cy", "width", "height")},
         "fps": observation.fps,
         "source": str(observation.source),
+        "provenance": provenance(observation.source, observed),
         "stages": [{"stage": name, "seconds": sec, "best_loss": (None if math.isnan(loss) else loss),
                     "candidates": count} for name, sec, loss, count in result.history],
         "track": {k: (v.tolist() if torch.is_tensor(v) else v) for k, v in result.track.items()},

@@ -1,0 +1,95 @@
+"""What a run was made from: the input's and the masks' digests, the code's revision, the library versions.
+
+A fit depends on more than its configuration: the same command on another video, another
+segmentation or another release of a library gives other numbers. ``result.json`` and
+``discover.json`` carry :func:`provenance` so two runs that disagree say whether their inputs did.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import platform
+import subprocess
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["provenance", "file_digest", "masks_digest"]
+
+PACKAGES = ("torchfit", "torch", "torchdiffeq", "kornia", "numpy", "opencv-python-headless", "trimesh", "hydra-core")
+
+
+def file_digest(path: str | Path) -> str | None:
+    """SHA-256 of a file's bytes; of a folder, of its files' names and bytes in name order (not
+    recursive); ``None`` when the path is neither (e.g. masks given in memory)."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    if path.is_file():
+        files = [path]
+    elif path.is_dir():
+        files = sorted(p for p in path.iterdir() if p.is_file())
+    else:
+        return None
+    for f in files:
+        if path.is_dir():
+            digest.update(f.name.encode() + b"\0")
+        with open(f, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    return digest.hexdigest()
+
+
+def masks_digest(masks) -> str:
+    """SHA-256 of (T, H, W) bool masks (their shape, then the bits packed): equal for equal
+    segmentations, whatever produced them."""
+    masks = np.ascontiguousarray(np.asarray(masks, bool))
+    digest = hashlib.sha256(str(masks.shape).encode())
+    digest.update(np.packbits(masks).tobytes())
+    return digest.hexdigest()
+
+
+def _revision() -> str | None:
+    """``git describe --always --dirty`` of the checkout torchfit is imported from, or ``None``
+    when it is not imported from one (an installed wheel)."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=root, capture_output=True,
+                             text=True, timeout=10)
+        if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root:
+            return None
+        described = subprocess.run(["git", "describe", "--always", "--dirty", "--abbrev=12"], cwd=root,
+                                   capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if described.returncode != 0:
+        return None
+    return described.stdout.strip() or None
+
+
+def _version(package: str) -> str | None:
+    try:
+        return metadata.version(package)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def provenance(source: str | Path | None = None, masks=None) -> dict:
+    """What a run was made from, for its output file.
+
+    Args:
+        source: the input path (a video file or a folder of images or masks), or ``None``.
+        masks: (T, H, W) bool the masks the fit used, or ``None``.
+
+    Returns:
+        ``{"source": str | None, "source_sha256": str | None, "masks_sha256": str | None,
+        "revision": str | None, "python": str, "packages": {name: version | None}}``.
+    """
+    return {
+        "source": None if source is None else str(source),
+        "source_sha256": None if source is None else file_digest(source),
+        "masks_sha256": None if masks is None else masks_digest(masks),
+        "revision": _revision(),
+        "python": platform.python_version(),
+        "packages": {name: _version(name) for name in PACKAGES},
+    }
