@@ -15,7 +15,8 @@ not hidden.
     python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` of the six sets ('' for
-the default path, ``_albedo1_exposure_fitted`` for the exposure path).
+the default path, ``_albedo1_exposure_fitted`` for the exposure path); ``--fresh K [K ...]``
+other sets instead (0 the first).
 """
 
 from __future__ import annotations
@@ -85,14 +86,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="decide the held-out test by the RMS rule (VIDEO_SELECTION's) or by the predictive "
                          "deviance within --margin (runs that stored it)")
     ap.add_argument("--margin", type=float, default=6.0, help="the deviance rule's margin (default 6)")
+    ap.add_argument("--fresh", type=int, nargs="+", metavar="K",
+                    help="fresh sets K instead of the six (e.g. --fresh 6: a set no rule has seen, counted apart)")
     args = ap.parse_args(argv)
+    sets = SETS if args.fresh is None else tuple(f"_fresh{k}" if k else "" for k in args.fresh)
     heldout = {"rms": rms_rule, "deviance": deviance_rule(args.margin), None: None}[args.heldout_rule]
     drop = tuple(t for t in args.drop.split(",") if t)
     if set(drop) - set(TESTS):
         ap.error(f"--drop: unknown tests {sorted(set(drop) - set(TESTS))}; choose among {TESTS}")
     tally = {}  # set -> {"stored" | "replay": [right effects, effect cases, controls quiet, controls, wrong]}
     unsettled = 0
-    for fresh in SETS:
+    for fresh in sets:
         folder = HERE / "results" / f"concealed{fresh}{args.suffix}"
         for path in sorted(folder.glob("*/discover.json")):
             content = json.loads(path.read_text())
