@@ -388,5 +388,10 @@ def test_a_held_out_margin_judges_the_prediction_by_its_deviance():
     assert score["fails"] == ["heldout"] and score["heldout_deviance_rise"] == pytest.approx(8.0)
     line = not_named_lines(vetoed, lambda s: "2.00 -> 2.40", lambda s: "")[0]
     assert "held-out predictive deviance rises by 8.0" in line and "deviance 40.0 -> 48.0" in line
+    # failing the evidence's spread as well, the report words both (the deviance's wording once
+    # shadowed the spread's function, and such a run stopped with a TypeError)
+    score["fails"], score["delta_bic_without_block"] = ["heldout", "evidence_spread"], -0.4
+    line = not_named_lines(vetoed, lambda s: "2.00 -> 2.40", lambda s: "frames 0-14")[0]
+    assert "deviance rises by 8.0" in line and "rests on frames 0-14 (ΔBIC -0.4 without them)" in line
     with pytest.raises(ValueError, match="heldout_margin"):
         SelectionSettings(heldout_margin=-1.0)

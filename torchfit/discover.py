@@ -730,12 +730,12 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
             if "unphysical" in fails:
                 reasons.append(f"its fit is unphysical ({'; '.join(score['unphysical'])}): another effect in disguise")
             if "heldout" in fails and score.get("heldout_deviance_rise") is not None:
-                spread = ("" if score.get("heldout_logdet_after") is None else
+                logdet = ("" if score.get("heldout_logdet_after") is None else
                           f", of which the prediction's spread {score['heldout_logdet_before']:.1f} -> "
                           f"{score['heldout_logdet_after']:.1f}")
                 reasons.append(f"its held-out predictive deviance rises by {score['heldout_deviance_rise']:.1f} "
                                f"({heldout(score)}; deviance {score['heldout_deviance_before']:.1f} -> "
-                               f"{score['heldout_deviance_after']:.1f}{spread})")
+                               f"{score['heldout_deviance_after']:.1f}{logdet})")
             elif "heldout" in fails:
                 reasons.append(f"it does not predict the held-out data well enough ({heldout(score)}, "
                                f"{100 * score['heldout_gain']:+.0f} %)")
