@@ -639,3 +639,23 @@ def test_replay_selection_reruns_forward_selection_from_stored_scores():
     # a look-alike within the margin stops the replay with both reported
     content["effects"]["quadratic_drag"][0]["delta_bic"] = 55.0
     assert replay.replay(content) == ([], ["time_scale", "quadratic_drag"], True)
+
+
+def test_coefficients_compares_right_names_with_the_truth():
+    """coefficients.py counts a run only when its verdict is exactly the hidden effect, and reads
+    the ratio and the error in standard errors from the final model's parameters."""
+    coefficients = _load("coefficients", CONCEALED.parent / "coefficients.py")
+
+    def run(verdict, value, std, truth=0.5):
+        return {"truth_effects": {"quadratic_drag": {"drag_coefficient": truth}}, "verdict": verdict,
+                "models": [{"params": {}}, {"params": {"quadratic_drag": {"drag_coefficient": {"value": value, "std": std}}}}]}
+
+    assert coefficients.coefficient_rows(run([], 0.6, 0.05)) == []  # missed: no coefficient
+    assert coefficients.coefficient_rows(run(["quadratic_drag", "magnus"], 0.6, 0.05)) == []  # a wrong second name
+    assert coefficients.coefficient_rows({"truth_effects": {}, "verdict": [], "models": []}) == []  # a control
+    rows = coefficients.coefficient_rows(run(["quadratic_drag"], 0.6, 0.05)) + \
+        coefficients.coefficient_rows(run(["quadratic_drag"], 0.45, 0.05))
+    s = coefficients.summary(rows)["quadratic_drag.drag_coefficient"]
+    assert s["n"] == 2 and s["ratio_min"] == pytest.approx(0.9) and s["ratio_max"] == pytest.approx(1.2)
+    assert s["ratio_median"] == pytest.approx(1.05) and s["z_mean"] == pytest.approx(0.5)  # z = +2 and -1
+    assert s["z_rms"] == pytest.approx(math.sqrt(2.5))
