@@ -216,7 +216,22 @@ def test_verdict_is_withheld_when_the_final_fit_is_poor(tmp_path, monkeypatch):
     run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == [] and content["verdict_withheld"] == ["quadratic_drag"]
-    assert "Verdict withheld" in (tmp_path / "report.txt").read_text()
+    text = (tmp_path / "report.txt").read_text()
+    assert "Verdict withheld" in text
+    assert "the baseline alone reached" not in text  # its baseline is below the guard too
+
+
+def test_withheld_line_says_when_the_baseline_alone_passed_the_guard():
+    """A verdict withheld for a final IoU below MIN_IOU: when the baseline alone was above it, the
+    line says the added effects traded overlap for moments (fresh-6 drag_light_ball on the exposure
+    path: 0.923 with the baseline, 0.799 with a clock and a drag)."""
+    from torchfit.discover_video import MIN_IOU, withheld_line
+
+    traded = withheld_line(["time_scale", "quadratic_drag"], 0.799, 0.923)
+    assert traded.startswith("Verdict withheld: even with time_scale, quadratic_drag")
+    assert f"mean IoU 0.799 < {MIN_IOU}; the baseline alone reached 0.923" in traded
+    for baseline in (None, MIN_IOU - 0.01):
+        assert "baseline alone" not in withheld_line(["time_scale"], 0.799, baseline)
 
 
 def test_report_says_which_frames_an_unnamed_candidate_rests_on(tmp_path):
