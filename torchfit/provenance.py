@@ -21,8 +21,8 @@ PACKAGES = ("torchfit", "torch", "torchdiffeq", "kornia", "numpy", "opencv-pytho
 
 
 def file_digest(path: str | Path) -> str | None:
-    """SHA-256 of a file's bytes; of a folder, of its files' names and bytes in name order (not
-    recursive); ``None`` when the path is neither (e.g. masks given in memory)."""
+    """SHA-256 of a file's bytes; of a folder, of its files' names, sizes and bytes in name order
+    (not recursive); ``None`` when the path is neither (e.g. masks given in memory)."""
     path = Path(path)
     digest = hashlib.sha256()
     if path.is_file():
@@ -32,8 +32,8 @@ def file_digest(path: str | Path) -> str | None:
     else:
         return None
     for f in files:
-        if path.is_dir():
-            digest.update(f.name.encode() + b"\0")
+        if path.is_dir():  # each file's name and size first: no two folders hash the same bytes
+            digest.update(f"{f.name}\0{f.stat().st_size}\0".encode())
         with open(f, "rb") as stream:
             for block in iter(lambda: stream.read(1 << 20), b""):
                 digest.update(block)
