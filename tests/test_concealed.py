@@ -659,3 +659,23 @@ def test_coefficients_compares_right_names_with_the_truth():
     assert s["n"] == 2 and s["ratio_min"] == pytest.approx(0.9) and s["ratio_max"] == pytest.approx(1.2)
     assert s["ratio_median"] == pytest.approx(1.05) and s["z_mean"] == pytest.approx(0.5)  # z = +2 and -1
     assert s["z_rms"] == pytest.approx(math.sqrt(2.5))
+
+
+def test_segmentation_correlation_reads_shift_size_and_memory():
+    """segmentation_correlation.py's errors: a mask moved by 2 px right and 1 px up reads (+2, -1)
+    in centroid and 0 in scale, a larger one a positive scale error; an alternating error has
+    autocorrelation near -1 at lag 1 and a slow one near +1."""
+    pytest.importorskip("cv2")
+    module = _load("segmentation_correlation", CONCEALED.parent / "segmentation_correlation.py")
+    true = np.zeros((3, 20, 30), bool)
+    true[:, 5:11, 8:16] = True
+    moved = np.roll(np.roll(true, 2, axis=2), -1, axis=1)
+    grown = true.copy()
+    grown[2, 4:12, 7:17] = True
+    errors = module.moment_errors(moved, true)
+    np.testing.assert_allclose(errors, [[2.0, -1.0, 0.0]] * 3, atol=1e-12)
+    assert module.moment_errors(grown, true)[2, 2] == pytest.approx(np.sqrt(80 / 48) - 1)
+    assert module.moment_errors(np.zeros_like(true), true).shape == (0,)  # no frame with both
+    t = np.arange(60.0)
+    assert module.autocorrelation((-1.0) ** t, 1) < -0.95
+    assert module.autocorrelation(np.sin(t / 20), 1) > 0.9

@@ -1,0 +1,73 @@
+"""The segmentation's error against the noise model: its size over the run's floors, and how long it lasts.
+
+For each recording: the segmented masks (the default segmentation) against MuJoCo's true masks,
+frame by frame: centroid x and y (px) and scale (the relative error of sqrt(area)). Printed per
+channel: RMS / the run's noise floor (``discover.json``'s ``noise``, the floors estimated from the
+fit's residuals), mean / floor, and the error's autocorrelation at lags 1, 2, 3 and 5 (an AR(1)
+error with lag-1 correlation r has r^k at lag k). Needs the recordings
+(``make_concealed.py [--fresh K]``) and the default-path runs (``concealed.py [--fresh K]``).
+
+    python experiments/discover/segmentation_correlation.py [--fresh K] [names...]   # ~15 s per recording
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from torchfit.video import load_observation
+
+HERE = Path(__file__).resolve().parent
+CHANNELS = ("centroid_x", "centroid_y", "scale")
+LAGS = (1, 2, 3, 5)
+
+
+def autocorrelation(error: np.ndarray, lag: int) -> float:
+    """Sample autocorrelation of a (T,) series at ``lag`` (about its mean)."""
+    e = error - error.mean()
+    return float((e[:-lag] * e[lag:]).sum() / (e * e).sum())
+
+
+def moment_errors(segmented: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """(F, 3) centroid x, y (px) and relative sqrt-area errors of (T, H, W) bool masks against the
+    true ones, over the F frames where both are non-empty."""
+    rows = []
+    for seg, ref in zip(segmented, true):
+        if not seg.any() or not ref.any():
+            continue
+        (ys, xs), (yt, xt) = np.nonzero(seg), np.nonzero(ref)
+        rows.append((xs.mean() - xt.mean(), ys.mean() - yt.mean(), np.sqrt(len(xs) / len(xt)) - 1.0))
+    return np.asarray(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("names", nargs="*", help="recordings (default: all of the set)")
+    ap.add_argument("--fresh", type=int, default=0, metavar="K", help="fresh set K (0: the first)")
+    args = ap.parse_args(argv)
+    suffix = f"_fresh{args.fresh}" if args.fresh else ""
+    recordings, results = HERE / f"recordings{suffix}", HERE / "results" / f"concealed{suffix}"
+    names = args.names or sorted(p.name for p in recordings.iterdir() if (p / "masks.npz").exists())
+    for name in names:
+        run = results / name / "discover.json"
+        if not run.exists():
+            raise SystemExit(f"no default-path run {run} (concealed.py{' --fresh ' + str(args.fresh) if args.fresh else ''} {name})")
+        floors = json.loads(run.read_text())["noise"]
+        folder = recordings / name
+        observation = load_observation(folder / "video.mp4", camera=folder / "camera.json")
+        errors = moment_errors(np.asarray(observation.masks, bool), np.load(folder / "masks.npz")["masks"])
+        cells = []
+        for channel, error in zip(CHANNELS, errors.T):
+            floor = floors[channel]
+            cells.append(f"{channel} rms/floor {np.sqrt((error ** 2).mean()) / floor:4.2f} mean/floor "
+                         f"{error.mean() / floor:+5.2f} acf " + " ".join(f"{autocorrelation(error, k):+.2f}" for k in LAGS))
+        print(f"{name:16s} " + " | ".join(cells), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
