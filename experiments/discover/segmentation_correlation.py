@@ -3,7 +3,7 @@
 For each recording: the segmented masks (the default segmentation) against MuJoCo's true masks,
 frame by frame: centroid x and y (px) and scale (the relative error of sqrt(area)). Printed per
 channel: RMS / the run's noise floor (``discover.json``'s ``noise``, the floors estimated from the
-fit's residuals), mean / floor, and the error's autocorrelation at lags 1, 2, 3 and 5 (an AR(1)
+baseline's residuals: a robust jitter), the error's own robust spread (1.4826 MAD) / floor, mean / floor, and the error's autocorrelation at lags 1, 2, 3 and 5 (an AR(1)
 error with lag-1 correlation r has r^k at lag k). Needs the recordings
 (``make_concealed.py [--fresh K]``) and the default-path runs (``concealed.py [--fresh K]``).
 
@@ -63,8 +63,10 @@ def main(argv: list[str] | None = None) -> int:
         cells = []
         for channel, error in zip(CHANNELS, errors.T):
             floor = floors[channel]
-            cells.append(f"{channel} rms/floor {np.sqrt((error ** 2).mean()) / floor:4.2f} mean/floor "
-                         f"{error.mean() / floor:+5.2f} acf " + " ".join(f"{autocorrelation(error, k):+.2f}" for k in LAGS))
+            robust = 1.4826 * np.median(np.abs(error - np.median(error)))  # as the floor's own MAD
+            cells.append(f"{channel} rms/floor {np.sqrt((error ** 2).mean()) / floor:4.2f} mad/floor {robust / floor:4.2f} "
+                         f"mean/floor {error.mean() / floor:+5.2f} acf "
+                         + " ".join(f"{autocorrelation(error, k):+.2f}" for k in LAGS))
         print(f"{name:16s} " + " | ".join(cells), flush=True)
     return 0
 
