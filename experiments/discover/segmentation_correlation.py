@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchfit.video import load_observation
+from torchfit.video import load_observation, raw_moments
 
 HERE = Path(__file__).resolve().parent
 CHANNELS = ("centroid_x", "centroid_y", "scale")
@@ -34,14 +34,15 @@ def autocorrelation(error: np.ndarray, lag: int) -> float:
 
 def moment_errors(segmented: np.ndarray, true: np.ndarray) -> np.ndarray:
     """(F, 3) centroid x, y (px) and relative sqrt-area errors of (T, H, W) bool masks against the
-    true ones, over the F frames where both are non-empty."""
-    rows = []
-    for seg, ref in zip(segmented, true):
-        if not seg.any() or not ref.any():
-            continue
-        (ys, xs), (yt, xt) = np.nonzero(seg), np.nonzero(ref)
-        rows.append((xs.mean() - xt.mean(), ys.mean() - yt.mean(), np.sqrt(len(xs) / len(xt)) - 1.0))
-    return np.asarray(rows)
+    true ones, over the F frames where both are non-empty ((0,) when there is none); from the
+    segmentation's own :func:`torchfit.video.raw_moments`."""
+    seg, ref = raw_moments(segmented), raw_moments(true)
+    both = (seg[:, 0] > 0) & (ref[:, 0] > 0)
+    if not both.any():
+        return np.empty(0)
+    seg, ref = seg[both], ref[both]
+    return np.stack((seg[:, 1] / seg[:, 0] - ref[:, 1] / ref[:, 0], seg[:, 2] / seg[:, 0] - ref[:, 2] / ref[:, 0],
+                     np.sqrt(seg[:, 0] / ref[:, 0]) - 1.0), axis=-1)
 
 
 def main(argv: list[str] | None = None) -> int:
