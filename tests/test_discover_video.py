@@ -378,6 +378,7 @@ def test_whitening_makes_frame_correlated_noise_independent_across_gaps():
     video = VideoProblem.__new__(VideoProblem)
     video.noise = {"scale": sigma}
     video.frame_scale = None
+    video.robust = None
     white = video._whitened(torch.as_tensor(sigma * x[mask])[None], mask, "scale")[0].numpy()
     assert abs(white.var() - 1.0) < 0.03
     assert abs(np.corrcoef(white[1:], white[:-1])[0, 1]) < 0.03
@@ -541,6 +542,50 @@ def test_held_out_fit_sees_no_held_out_frame():
     frames = len(rows) - len(video.prior_terms(held_model.nuisances))
     whitened = video.whitened_channels(video.residuals(held_model), video.held)
     assert torch.allclose(rows[:frames], torch.as_tensor(np.concatenate([whitened[c] for c in dv.CHANNELS])))
+
+
+def test_hubers_criterion_keeps_a_few_bad_frames_from_pulling_the_fit():
+    """``robust=2``: three train frames in a row whose observed centroid is 3 px off (a
+    segmentation's bad stretch, whitened residuals 6-15 noise units) move the fitted clock about an
+    eighth as far as they move the squares' fit (at 1 px, residuals of 3-4 units, only a fifth
+    less: Huber's loss bounds each residual's pull, it does not remove it); on clean masks (every whitened residual within 2) the two fits agree; and a
+    fit's chi-squared is Huber's loss of the plain whitened residuals (plus the priors' squares)."""
+    from types import SimpleNamespace
+
+    import torchfit.discover_video as dv
+    from torchfit.residuals import huber_root
+
+    def fitted(robust, shift):
+        problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
+        video = dv.VideoProblem(problem, candidates=("time_scale",), robust=robust)
+        base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+        video._set_noise(base)
+        bad = [12, 13, 14]
+        assert video.train[bad].all()  # used and fitted (not held out, not left out as outliers)
+        table = video.edge_table.clone()  # raw moments (m00, m10, m01, m20, m11, m02): moved shift px in x
+        m = table[:, :, bad].clone()
+        table[:, :, bad, 1] = m[..., 1] + shift * m[..., 0]
+        table[:, :, bad, 3] = m[..., 3] + 2 * shift * m[..., 1] + shift**2 * m[..., 0]
+        table[:, :, bad, 4] = m[..., 4] + shift * m[..., 2]
+        video.edge_table = table
+        fit = video.fit(("time_scale",), SimpleNamespace(payload={"model": base, "held_model": base}))
+        return video, fit, float(fit.payload["model"].values["time_scale"]["time_scale"])
+
+    _, _, clean = fitted(None, 0.0)
+    _, _, clean_robust = fitted(2.0, 0.0)
+    squares_video, _, squares = fitted(None, 3.0)
+    robust_video, robust_fit, robust = fitted(2.0, 3.0)
+    assert abs(clean - 1.04) < 0.005
+    assert clean_robust == pytest.approx(clean, abs=1e-6)
+    assert abs(squares - clean) > 2e-3  # the bad frames do pull the squares' fit
+    assert abs(robust - clean) < 0.3 * abs(squares - clean)
+    # the robust fit's chi-squared is Huber's loss of its plain whitened residuals
+    used = robust_video.problem.used.cpu().numpy().astype(bool)
+    plain = squares_video.whitened_channels(robust_video.residuals(robust_fit.payload["model"]), used)
+    loss = sum(float(huber_root(torch.as_tensor(v), 2.0).square().sum()) for v in plain.values())
+    priors = sum(p * p for p in robust_video.prior_terms(robust_fit.payload["model"].nuisances))
+    assert robust_fit.rss == pytest.approx(loss + priors, rel=1e-9)
+    assert max(float(np.abs(v).max()) for v in plain.values()) > 2.0  # the loss is Huber's, not squares
 
 
 def test_levenberg_marquardt_refuses_a_step_out_of_an_effect_domain(monkeypatch):
@@ -800,9 +845,11 @@ def test_report_locates_a_size_mismatch_the_edge_bias_took():
     assert size_mismatch_lines(None, []) == []
 
 
-def test_cli_speed_noise_is_checked_and_recorded(tmp_path):
+def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     """``params.speed_noise``: true records the share of the noise read as growing with the speed
-    (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused."""
+    (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused.
+    ``params.robust``: a positive number is recorded and said in the report; zero or a word,
+    refused with the key named. (One run takes both options.)"""
     from pathlib import Path
 
     from hydra import compose, initialize_config_module
@@ -822,13 +869,20 @@ def test_cli_speed_noise_is_checked_and_recorded(tmp_path):
         cfg = compose(config_name="config", overrides=common + ["params.heldout_margin=-2"])
     with pytest.raises(ConfigError, match="heldout_margin must be a deviance >= 0"):
         run(cfg, tmp_path / "bad_margin")
+    for bad in ("0", "huber"):
+        with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+            cfg = compose(config_name="config", overrides=common + [f"params.robust={bad}"])
+        with pytest.raises(ConfigError, match=f"params.robust must be Huber's threshold .* got '?{bad}'?"):
+            run(cfg, tmp_path / f"bad_robust_{bad}")
     with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["params.speed_noise=true"])
+        cfg = compose(config_name="config", overrides=common + ["params.speed_noise=true", "params.robust=2"])
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert 0.0 <= content["noise_speed_share"] <= SPEED_NOISE_MAX
     assert content["models"][0]["chi2_per_obs"] > 0
     assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
+    assert content["robust"] == 2.0
+    assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
 
 
 def test_cli_exposure_is_checked_and_recorded(tmp_path):

@@ -4,8 +4,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from torchfit.residuals import locate, noise_floor, residual_channels
+from torchfit.residuals import huber_root, locate, noise_floor, residual_channels
 from torchfit.video import load_observation
 
 DATA = Path(__file__).resolve().parents[1] / "torchfit" / "recordings"
@@ -72,3 +73,28 @@ def test_noise_floor_of_frame_correlated_noise():
         x[k] = rho * x[k - 1] + np.sqrt(1 - rho**2) * rng.normal()
     assert abs(noise_floor(x, rho) - 1.0) < 0.03
     assert abs(noise_floor(x) - np.sqrt((6 - 8 * rho + 2 * rho**2) / 6)) < 0.03
+
+
+def test_huber_root_squares_sum_to_hubers_loss_and_pass_small_residuals():
+    """Squares of huber_root are Huber's loss (r^2 within k, 2k|r| - k^2 beyond), with the sign
+    kept; residuals within k pass unchanged and NaN stays NaN."""
+    k = 2.0
+    r = torch.tensor([0.0, 0.5, -1.9, 2.0, -2.5, 10.0, -40.0, float("nan")], dtype=torch.float64)
+    out = huber_root(r, k)
+    size = r.abs()
+    loss = torch.where(size <= k, r * r, 2 * k * size - k * k)
+    assert torch.allclose(out[:-1].square(), loss[:-1])
+    assert torch.equal(torch.sign(out[:-1]), torch.sign(r[:-1]))
+    assert torch.equal(out[:4], r[:4])
+    assert float(out[5].square()) == pytest.approx(36.0)  # 10 noise units count 36, not 100
+    assert torch.isnan(out[-1])
+
+
+def test_huber_root_gradcheck_float64():
+    """Finite differences agree with autograd on both sides of the threshold (C1 at k)."""
+    r = torch.tensor([[-7.0, -2.3, -1.2, 0.3, 1.7, 2.6, 11.0]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: huber_root(x, 2.0), (r,))
+    # the slope is continuous at k: 1 just inside, k / sqrt(2k|r| - k^2) -> 1 just outside
+    edge = torch.tensor([2.0 - 1e-7, 2.0 + 1e-7], dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(huber_root(edge, 2.0).sum(), edge)
+    assert torch.allclose(grad, torch.ones(2, dtype=torch.float64), atol=1e-6)

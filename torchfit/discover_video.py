@@ -61,6 +61,7 @@ from .residuals import (
     UNITS,
     Residuals,
     channel_values,
+    huber_root,
     locate,
     noise_floor,
     systematic_floor,
@@ -467,6 +468,13 @@ class VideoProblem:
             experiments/discover/diagnose.py error-speed), and a floor the same on every frame
             gives the fast frames' errors the weight of evidence. Off: the same floor on every
             frame (the default).
+        robust: a number ``k``: the criterion takes Huber's loss of the whitened residuals (squares
+            within ``k`` noise units, linear beyond; :func:`torchfit.residuals.huber_root`) in place
+            of their squares, everywhere they enter: the fits, the chi-squared and BIC, the
+            evidence per frame, the covariances and the held-out deviance (the held-out RMS is
+            the plain one). The segmentation's error is heavy-tailed: its RMS is 1.1-1.6 noise
+            floors where its robust spread is 0.7-0.9 (experiments/discover/HISTORY.md,
+            twenty-third session). None: squares (the default).
         heldout_deviance: also give each fit its held-out predictive deviance
             (``ModelFit.heldout_deviance``, ``heldout_logdet``), which
             ``SelectionSettings.heldout_margin`` decides by; one more Jacobian per fit, so only
@@ -486,7 +494,7 @@ class VideoProblem:
                  search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
-                 speed_noise: bool = False, heldout_deviance: bool = False,
+                 speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
@@ -508,6 +516,10 @@ class VideoProblem:
         if not (isinstance(baseline_starts, int) and baseline_starts >= 1):
             raise ValueError(f"baseline_starts must be a whole number of the search's candidates, at least 1, "
                              f"got {baseline_starts!r}")
+        if robust is not None and not (math.isfinite(robust) and robust > 0):
+            raise ValueError(f"robust must be Huber's threshold in noise units, a positive number (or None: "
+                             f"squares), got {robust!r}")
+        self.robust = robust
         self.baseline_starts = baseline_starts
         self.search_problem = problem
         self.exposure = exposure
@@ -642,16 +654,18 @@ class VideoProblem:
         ``w_0 = r_0 / s`` and ``w_k = (r_k - a r_(k-1)) / (s sqrt(1 - a^2))`` (the residuals divided
         by their floors first) with ``a = rho^gap`` for frames ``gap`` apart (exact for gaps): the sum
         of squares is the residual's chi-squared under that noise. A smooth trend counts as
-        fewer independent observations than the frames it spans.
+        fewer independent observations than the frames it spans. With :attr:`robust`, each is
+        then :func:`torchfit.residuals.huber_root`'s, so the sum of squares is Huber's cost.
         """
         frames = torch.as_tensor(np.flatnonzero(mask), dtype=values.dtype, device=values.device)
         scaled = values / self.noise[channel]
         if self.frame_scale is not None:  # speed_noise: each frame's floor
             scaled = scaled / torch.as_tensor(self.frame_scale[mask], dtype=values.dtype, device=values.device)
-        if FRAME_CORRELATION == 0 or len(frames) < 2:
-            return scaled
-        a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
-        return torch.cat((scaled[:, :1], (scaled[:, 1:] - a * scaled[:, :-1]) / torch.sqrt(1 - a * a)), -1)
+        white = scaled
+        if FRAME_CORRELATION != 0 and len(frames) >= 2:
+            a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
+            white = torch.cat((scaled[:, :1], (scaled[:, 1:] - a * scaled[:, :-1]) / torch.sqrt(1 - a * a)), -1)
+        return white if self.robust is None else huber_root(white, self.robust)
 
     def whitened_channels(self, channels: dict, mask: np.ndarray) -> dict:
         """Channel name -> (N,) whitened residuals of the frames in ``mask``, from (T,) channels
@@ -1250,7 +1264,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
-                   baseline_starts: int = 1, speed_noise: bool = False,
+                   baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
                    progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
@@ -1278,6 +1292,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             :class:`VideoProblem`).
         speed_noise: noise floors that grow with the silhouette's speed, by a share read from the
             data (see :class:`VideoProblem`).
+        robust: Huber's threshold in noise units: the criterion's loss (see :class:`VideoProblem`);
+            None: squares.
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1294,7 +1310,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
                          fit_exposure=fit_exposure, point_spread=point_spread,
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
-                         heldout_deviance=settings.heldout_margin is not None, progress=say)
+                         heldout_deviance=settings.heldout_margin is not None, robust=robust, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1322,6 +1338,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise": video.noise,
         "noise_edge_px": edge_px,
         "noise_speed_share": video.speed_share if speed_noise else None,
+        "robust": robust,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,
@@ -1524,6 +1541,9 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
                  f"(noise floors: " + ", ".join(f"{k} {v:.2g}" for k, v in video.noise.items()) + ").")
+    if video.robust is not None:
+        lines.append(f"Criterion: Huber's loss at {video.robust:g} noise units (params.robust): a frame further off "
+                     f"counts linearly, not squared, so chi2 above is Huber's cost.")
     if video.frame_scale is not None:
         scale = video.frame_scale[video.problem.used.cpu().numpy().astype(bool)]
         lines.append(f"Noise floors grow with the speed (params.speed_noise): {video.speed_share:.2f} of the noise "

@@ -423,6 +423,11 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     speed_noise = settings.pop("speed_noise", False)
     if not isinstance(speed_noise, bool):
         raise ConfigError(f"params.speed_noise must be true or false, got {speed_noise!r}")
+    robust = settings.pop("robust", None)
+    if robust is not None and (isinstance(robust, bool) or not isinstance(robust, (int, float))
+                               or not (math.isfinite(robust) and robust > 0)):
+        raise ConfigError(f"params.robust must be Huber's threshold in noise units, a positive number "
+                          f"(e.g. 2), or null for squares, got {robust!r}")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -467,7 +472,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             progress=ctx["progress"])
+                             robust=None if robust is None else float(robust), progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")

@@ -81,7 +81,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
-            heldout_margin: float | None = None) -> dict:
+            heldout_margin: float | None = None, robust: float | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
@@ -94,7 +94,13 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
-                          speed_noise=speed_noise)
+                          speed_noise=speed_noise, robust=robust)
+
+
+def robust_suffix(robust: float | None) -> str:
+    """The results folder's suffix of a run whose criterion is Huber's loss at ``robust`` noise
+    units (none for squares)."""
+    return "" if robust is None else f"_huber{robust:g}"
 
 
 def heldout_suffix(margin: float | None) -> str:
@@ -652,7 +658,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
-         shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None) -> None:
+         shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
+         robust: float | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -670,7 +677,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                             + "".join(f"_with_{name}" for name in extra)
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + ("_speednoise" if speed_noise else "")
-                            + heldout_suffix(heldout_margin)
+                            + heldout_suffix(heldout_margin) + robust_suffix(robust)
                             + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
     if table_only:
         return print(rebuild(out, recordings))
@@ -695,7 +702,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
-                          heldout_margin=heldout_margin)
+                          heldout_margin=heldout_margin, robust=robust)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -767,6 +774,9 @@ if __name__ == "__main__":
     ap.add_argument("--heldout-margin", type=float, metavar="M",
                     help="judge the held-out frames by their predictive deviance, which may rise by at most M "
                          "(SelectionSettings.heldout_margin; results/concealed..._heldout<M>/)")
+    ap.add_argument("--robust", type=float, metavar="K",
+                    help="the criterion takes Huber's loss at K noise units instead of squares "
+                         "(VideoProblem(robust=K); results/concealed..._huber<K>/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -791,7 +801,9 @@ if __name__ == "__main__":
                                    "linear" if args.linear_shading else None)
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
-    variant += heldout_suffix(args.heldout_margin)
+    variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust)
+    if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
+        ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
         ap.error(f"--heldout-margin needs a deviance >= 0, got {args.heldout_margin}")
     if args.rules:  # with a variant: over its segmented runs
@@ -802,7 +814,8 @@ if __name__ == "__main__":
         ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
-                            or args.linear_shading or args.speed_noise or args.heldout_margin is not None):
+                            or args.linear_shading or args.speed_noise or args.heldout_margin is not None
+                            or args.robust is not None):
         if variant:
             suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
@@ -822,11 +835,12 @@ if __name__ == "__main__":
                                                                f" (prior {point_spread[0]:g} ± {point_spread[1]:g} px²)")]))
             options = ((["noise floors growing with the speed"] if args.speed_noise else [])
                        + ([f"held-out deviance within {args.heldout_margin:g}"] if args.heldout_margin is not None
-                          else []))
+                          else [])
+                       + ([f"Huber's loss at {args.robust:g}"] if args.robust is not None else []))
             label = ", ".join(path_parts + options)
             # an option on another path: against that path without it
-            path = (variant.removesuffix(heldout_suffix(args.heldout_margin)).removesuffix("_speednoise")
-                    if options else "")
+            path = (variant.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
+                    .removesuffix("_speednoise") if options else "")
             text = side_by_side(suffix, label, column="segmentation", base=path,
                                 base_label=", ".join(path_parts) if path else "default")
         elif args.crf is not None:
@@ -901,4 +915,4 @@ if __name__ == "__main__":
          coverage_clip=False if args.unclipped else None, fit_exposure=args.fit_exposure,
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
-         speed_noise=args.speed_noise, heldout_margin=args.heldout_margin)
+         speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust)
