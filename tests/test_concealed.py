@@ -641,6 +641,36 @@ def test_replay_selection_reruns_forward_selection_from_stored_scores():
     assert replay.replay(content) == ([], ["time_scale", "quadratic_drag"], True)
 
 
+def test_replay_selection_lists_where_two_variants_differ(tmp_path):
+    """``differences``: a recording whose replayed verdicts differ is listed, one that agrees is
+    not, one run only one way is skipped; under the RMS rule a clock that predicts the held-out
+    frames 10 % worse is vetoed on one side only, and listed."""
+    replay = _load("replay_selection", CONCEALED.parent / "replay_selection.py")
+
+    def run(folder, name, named, gain=0.1):
+        score = {"delta_bic": 60.0 if named else 1.0, "fails": [] if named else ["delta_bic"],
+                 "heldout_gain": gain, "heldout_rms_after": 2.4, "heldout_deviance_rise": 0.0}
+        rounds = [score] + ([{**score, "delta_bic": 1.0, "fails": ["delta_bic"]}] if named else [])
+        content = {"verdict": ["time_scale"] if named else [], "truth_effects": {"time_scale": {}},
+                   "indistinguishable": [], "effects": {"time_scale": rounds}}
+        (folder / name).mkdir(parents=True)
+        (folder / name / "discover.json").write_text(json.dumps(content))
+
+    first, second = tmp_path / "a", tmp_path / "b"
+    run(first, "same", True)
+    run(second, "same", True)
+    run(first, "moved", True)
+    run(second, "moved", False)
+    run(first, "alone", True)
+    assert [line.split()[0] for line in replay.differences(first, second)] == ["moved"]
+    run(first, "vetoed", True, gain=-0.10)
+    run(second, "vetoed", True)
+    assert [line.split()[0] for line in replay.differences(first, second)] == ["moved"]
+    lines = replay.differences(first, second, heldout=replay.rms_rule)
+    assert [line.split()[0] for line in lines] == ["moved", "vetoed"]
+    assert "[] against ['time_scale']" in lines[1]
+
+
 def test_coefficients_compares_right_names_with_the_truth():
     """coefficients.py counts a run only when its verdict is exactly the hidden effect, and reads
     the ratio and the error in standard errors from the final model's parameters."""

@@ -13,6 +13,10 @@ not hidden.
 
     python experiments/discover/replay_selection.py SUFFIX --drop heldout
     python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms
+    python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms --against OTHER
+
+``--against OTHER`` also lists, recording by recording, where the replayed verdicts of two
+variants' runs (``SUFFIX`` and ``OTHER``) differ, or where either needs a rerun.
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` of the six sets ('' for
 the default path, ``_albedo1_exposure_fitted`` for the exposure path); ``--fresh K [K ...]``
@@ -78,6 +82,36 @@ def replay(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], 
     return names, None, True
 
 
+def replayed(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], bool] | None = None
+             ) -> tuple[list[str], list[str] | None, bool]:
+    """The verdict a replay reports (:func:`replay`): the stored verdict as reported ([] where it
+    was withheld for a poor fit) while the replay names the stored names, else the replay's names;
+    with the look-alikes and whether it is exact."""
+    stored = content.get("verdict_withheld") or content["verdict"]
+    names, alike, exact = replay(content, drop, heldout)
+    return (content["verdict"] if names == stored else names), alike, exact
+
+
+def differences(first: Path, second: Path, drop: tuple[str, ...] = (),
+                heldout: Callable[[dict], bool] | None = None) -> list[str]:
+    """One line per recording run in both results folders whose replayed verdicts
+    (:func:`replayed`) differ, or where either replay needs a rerun."""
+    lines = []
+    for path in sorted(first.glob("*/discover.json")):
+        other = second / path.parent.name / "discover.json"
+        if not other.exists():
+            continue
+        content = json.loads(path.read_text())
+        a, b = replayed(content, drop, heldout), replayed(json.loads(other.read_text()), drop, heldout)
+        if a != b or not (a[2] and b[2]):
+            def said(verdict):
+                return (f"{verdict[0]}" + (f" (look-alikes {verdict[1]})" if verdict[1] else "")
+                        + ("" if verdict[2] else " (needs a rerun)"))
+            lines.append(f"{path.parent.name:16s} hidden {sorted(content['truth_effects'] or {})}: "
+                         f"{said(a)} against {said(b)}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("suffix", help="results folder suffix ('' for the default path)")
@@ -88,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--margin", type=float, default=6.0, help="the deviance rule's margin (default 6)")
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K",
                     help="fresh sets K instead of the six (e.g. --fresh 6: a set no rule has seen, counted apart)")
+    ap.add_argument("--against", metavar="OTHER",
+                    help="also list the recordings whose replayed verdict differs from the runs of suffix OTHER")
     args = ap.parse_args(argv)
     sets = SETS if args.fresh is None else tuple(f"_fresh{k}" if k else "" for k in args.fresh)
     heldout = {"rms": rms_rule, "deviance": deviance_rule(args.margin), None: None}[args.heldout_rule]
@@ -113,9 +149,8 @@ def main(argv: list[str] | None = None) -> int:
             counts = tally.setdefault(label, {"stored": [0] * 5, "replay": [0] * 5})
             # the stored verdict as reported ([] where withheld for a poor fit); the replay keeps the
             # withholding where its names are the stored ones
-            replayed = content["verdict"] if names == stored else names
             for key, named, ties, settled in (("stored", content["verdict"], content["indistinguishable"], True),
-                                              ("replay", replayed, alike, exact)):
+                                              ("replay", replayed(content, drop, heldout)[0], alike, exact)):
                 if not settled:
                     unsettled += key == "replay"
                     continue
@@ -138,6 +173,12 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(f"| {name} | {label} | {row[0]} of {row[1]} | {row[2]} of {row[3]} | {row[4]} |")
     print("\n".join(lines))
     print(f"{unsettled} replayed runs need a rerun (left out of the replay's counts)")
+    if args.against is not None:
+        print(f"\nWhere {args.suffix or 'the default'} and {args.against or 'the default'} differ, replayed:")
+        for fresh in sets:
+            for line in differences(HERE / "results" / f"concealed{fresh}{args.suffix}",
+                                    HERE / "results" / f"concealed{fresh}{args.against}", drop, heldout):
+                print(f"{fresh or 'first':8s} {line}")
     return 0
 
 
