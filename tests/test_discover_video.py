@@ -169,6 +169,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
     assert content["noise_edge_px"] == 0.05 and content["noise"]["centroid_x"] >= 0.05
+    assert content["robust"] is None  # squares without an exposure
     assert set(content["located"]["channels"]) == {"centroid_x", "centroid_y", "scale", "shape", "orientation"}
     tried = content["effects"]["quadratic_drag"][0]
     assert {"params", "delta_bic", "p_value", "heldout_rms_before", "heldout_rms_after"} <= set(tried)
@@ -885,6 +886,22 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
 
 
+def test_robust_setting_is_hubers_on_the_exposure_path_by_default():
+    """``params.robust``: null is Huber's loss at 2 with an exposure and squares without; false is
+    squares on either path; a number is that threshold; anything else is refused, named."""
+    from torchfit.run import ConfigError, robust_setting
+    from torchfit.search import Exposure
+
+    exposure = Exposure(0.5, 0)
+    assert robust_setting(None, exposure) == 2.0
+    assert robust_setting(None, None) is None
+    assert robust_setting(False, exposure) is None
+    assert robust_setting(3, None) == 3.0
+    for bad in (True, 0, -1.0, float("nan"), "huber"):
+        with pytest.raises(ConfigError, match="params.robust must be"):
+            robust_setting(bad, exposure)
+
+
 def test_cli_exposure_is_checked_and_recorded(tmp_path):
     """``data.exposure``: a fraction outside [0, 1] or taps of 1 are refused with the key named;
     a quick run with one compares the soft coverage and records the exposure in discover.json,
@@ -913,6 +930,7 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert content["exposure"] == {"fraction": 0.5, "taps": 0}
+    assert content["robust"] == 2.0  # Huber's loss, the exposure path's default
     assert content["models"][0]["chi2_per_obs"] > 0
     assert content["exposure_fitted"] is None
     # data.fit_exposure: refused without a start, or when not a boolean
