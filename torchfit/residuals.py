@@ -156,7 +156,7 @@ def huber_root(values: torch.Tensor, k: float) -> torch.Tensor:
     Huber's loss ``rho(r) = r^2`` for ``|r| <= k`` and ``2 k |r| - k^2`` beyond: the squares of
     the result sum to Huber's cost, so a least-squares solver, a chi-squared and a Gauss-Newton
     covariance of these values are Huber's (the "square-rooted" robust cost of Triggs et al.,
-    *Bundle adjustment — a modern synthesis*, 2000, section 4.3). Residuals within ``k`` pass
+    *Bundle adjustment — a modern synthesis*, 2000). Residuals within ``k`` pass
     unchanged; a frame ``m`` noise units off counts ``2 k m - k^2`` instead of ``m^2`` (k = 2:
     36 instead of 100 at 10). Continuously differentiable; NaN stays NaN. Same shape as ``values``.
     """
