@@ -82,14 +82,23 @@ def replay(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], 
     return names, None, True
 
 
+def reported(content: dict, names: list[str]) -> list[str]:
+    """The verdict a replay that names ``names`` reports: the stored verdict as reported ([] where
+    it was withheld for a poor fit) while those are the stored names, else ``names``."""
+    return content["verdict"] if names == (content.get("verdict_withheld") or content["verdict"]) else names
+
+
 def replayed(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], bool] | None = None
              ) -> tuple[list[str], list[str] | None, bool]:
-    """The verdict a replay reports (:func:`replay`): the stored verdict as reported ([] where it
-    was withheld for a poor fit) while the replay names the stored names, else the replay's names;
-    with the look-alikes and whether it is exact."""
-    stored = content.get("verdict_withheld") or content["verdict"]
+    """:func:`replay`'s names as reported (:func:`reported`), its look-alikes and whether it is exact."""
     names, alike, exact = replay(content, drop, heldout)
-    return (content["verdict"] if names == stored else names), alike, exact
+    return reported(content, names), alike, exact
+
+
+def _said(verdict: tuple[list[str], list[str] | None, bool]) -> str:
+    """A replayed verdict (:func:`replayed`) in words."""
+    return (f"{verdict[0]}" + (f" (look-alikes {verdict[1]})" if verdict[1] else "")
+            + ("" if verdict[2] else " (needs a rerun)"))
 
 
 def differences(first: Path, second: Path, drop: tuple[str, ...] = (),
@@ -104,11 +113,8 @@ def differences(first: Path, second: Path, drop: tuple[str, ...] = (),
         content = json.loads(path.read_text())
         a, b = replayed(content, drop, heldout), replayed(json.loads(other.read_text()), drop, heldout)
         if a != b or not (a[2] and b[2]):
-            def said(verdict):
-                return (f"{verdict[0]}" + (f" (look-alikes {verdict[1]})" if verdict[1] else "")
-                        + ("" if verdict[2] else " (needs a rerun)"))
             lines.append(f"{path.parent.name:16s} hidden {sorted(content['truth_effects'] or {})}: "
-                         f"{said(a)} against {said(b)}")
+                         f"{_said(a)} against {_said(b)}")
     return lines
 
 
@@ -150,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
             # the stored verdict as reported ([] where withheld for a poor fit); the replay keeps the
             # withholding where its names are the stored ones
             for key, named, ties, settled in (("stored", content["verdict"], content["indistinguishable"], True),
-                                              ("replay", replayed(content, drop, heldout)[0], alike, exact)):
+                                              ("replay", reported(content, names), alike, exact)):
                 if not settled:
                     unsettled += key == "replay"
                     continue
