@@ -691,6 +691,29 @@ def test_coefficients_compares_right_names_with_the_truth():
     assert s["z_rms"] == pytest.approx(math.sqrt(2.5))
 
 
+def test_coefficients_unselected_reads_every_first_round_fit_and_the_controls():
+    """``--unselected``: the hidden parameter from the first round's fit of the hidden effect
+    alone, named or not (a miss counts, a wrong second name does not change it), and the
+    controls' first-round candidates' Wald statistics and chi-squared drops."""
+    coefficients = _load("coefficients", CONCEALED.parent / "coefficients.py")
+
+    def run(verdict, value, std):
+        first = {"params": {"quadratic_drag": {"drag_coefficient": {"value": value, "std": std}}},
+                 "delta_dof": 1, "wald_chi2": 9.0, "delta_chi2": 8.0}
+        later = {"params": {"quadratic_drag": {"drag_coefficient": {"value": 9.0, "std": 1.0}}}}
+        return {"truth_effects": {"quadratic_drag": {"drag_coefficient": 0.5}}, "verdict": verdict,
+                "effects": {"quadratic_drag": [first, later]}, "models": []}
+
+    assert coefficients.unselected_rows(run([], 0.7, 0.1)) == [("quadratic_drag", "drag_coefficient", 0.5, 0.7, 0.1)]
+    assert coefficients.unselected_rows(run(["magnus", "quadratic_drag"], 0.4, 0.1))[0][3] == 0.4
+    assert coefficients.control_rows(run([], 0.7, 0.1)) == []  # an effect recording is no control
+    control = {"truth_effects": {}, "verdict": [], "effects": {
+        "time_scale": [{"delta_dof": 1, "wald_chi2": 0.5, "delta_chi2": 0.7, "params": {}}],
+        "lens_distortion": [{"delta_dof": 2, "wald_chi2": 2.5, "delta_chi2": 3.0, "params": {}}]}}
+    assert coefficients.control_rows(control) == [("time_scale", 1, 0.5, 0.7), ("lens_distortion", 2, 2.5, 3.0)]
+    assert coefficients.unselected_rows(control) == []
+
+
 def test_segmentation_correlation_reads_shift_size_and_memory():
     """segmentation_correlation.py's errors: a mask moved by 2 px right and 1 px up reads (+2, -1)
     in centroid and 0 in scale, a larger one a positive scale error; an alternating error has

@@ -6,7 +6,13 @@ reported standard error). Per parameter: the count, the ratio's median and range
 bias in standard errors) and RMS (about 1 when the standard errors are right). From the stored
 discover.json files (no fitting).
 
-    python experiments/discover/coefficients.py SUFFIX [--fresh K ...] [--each]
+``--unselected`` asks the same of every run, named or not, so no threshold picks the rows: each
+hidden scalar parameter from the first round's fit of the baseline plus the hidden effect alone
+(``effects[hidden][0]``), against the truth; and on the controls, each candidate's first-round
+Wald statistic and chi-squared drop against its degrees of freedom (means about the degrees of
+freedom when the noise floors are right in that candidate's direction).
+
+    python experiments/discover/coefficients.py SUFFIX [--fresh K ...] [--each] [--unselected]
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` ('' for the default path,
 ``_albedo1_exposure_fitted_heldout6`` for the exposure path's complete runs); the six sets unless
@@ -44,6 +50,33 @@ def coefficient_rows(content: dict) -> list[tuple[str, str, float, float, float]
     return rows
 
 
+def unselected_rows(content: dict) -> list[tuple[str, str, float, float, float]]:
+    """``(effect, parameter, truth, fitted, std)`` of a run's hidden scalar parameters from the
+    first round's fit of the hidden effect alone, whatever the verdict (none for a control, a
+    vector, a truth of 0, or a run that did not score the effect)."""
+    rows = []
+    for effect, params in (content.get("truth_effects") or {}).items():
+        rounds = content.get("effects", {}).get(effect) or []
+        if not rounds:
+            continue
+        fitted = rounds[0]["params"].get(effect, {})
+        for name, value in params.items():
+            got = fitted.get(name)
+            if got is None or isinstance(value, list) or isinstance(got["value"], list) or value == 0:
+                continue
+            rows.append((effect, name, float(value), float(got["value"]), float(got["std"])))
+    return rows
+
+
+def control_rows(content: dict) -> list[tuple[str, int, float, float]]:
+    """``(candidate, degrees of freedom, Wald statistic, chi-squared drop)`` of each first-round
+    candidate of a control (a run with no hidden effect; none otherwise)."""
+    if content.get("truth_effects"):
+        return []
+    return [(name, int(rounds[0]["delta_dof"]), float(rounds[0]["wald_chi2"]), float(rounds[0]["delta_chi2"]))
+            for name, rounds in content.get("effects", {}).items() if rounds and "wald_chi2" in rounds[0]]
+
+
 def summary(rows: list[tuple[str, str, float, float, float]]) -> dict:
     """``{"effect.parameter": {"n", "ratio_median", "ratio_min", "ratio_max", "z_mean", "z_rms"}}``."""
     out: dict = {}
@@ -63,22 +96,35 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("suffix", help="results folder suffix ('' for the default path)")
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K", help="these sets instead of the six (0 the first)")
     ap.add_argument("--each", action="store_true", help="list every recording's ratio and z")
+    ap.add_argument("--unselected", action="store_true",
+                    help="every run's first-round fit of its hidden effect, named or not, and the controls' "
+                         "first-round candidates")
     args = ap.parse_args(argv)
-    rows = []
+    read = unselected_rows if args.unselected else coefficient_rows
+    rows, controls = [], []
     for k in args.fresh if args.fresh is not None else SIX:
         folder = HERE / "results" / f"concealed{f'_fresh{k}' if k else ''}{args.suffix}"
         if not folder.is_dir():
             raise SystemExit(f"no results folder {folder} (run concealed.py for that set and suffix first)")
         for path in sorted(folder.glob("*/discover.json")):
-            for effect, name, truth, fit, std in coefficient_rows(json.loads(path.read_text())):
+            content = json.loads(path.read_text())
+            controls += control_rows(content) if args.unselected else []
+            for effect, name, truth, fit, std in read(content):
                 rows.append((effect, name, truth, fit, std))
                 if args.each:
                     print(f"{folder.name:48s} {path.parent.name:16s} {effect}.{name} {fit:.4g} (true {truth:.4g}) "
                           f"ratio {fit / truth:.3f} z {(fit - truth) / std:+.2f}")
-    print("| parameter | named right | fit / truth, median (range) | mean z | RMS z |\n|---|---|---|---|---|")
+    print(f"| parameter | {'every run, first round' if args.unselected else 'named right'} | fit / truth, median (range) | mean z | RMS z |\n|---|---|---|---|---|")
     for key, s in summary(rows).items():
         print(f"| {key} | {s['n']} | {s['ratio_median']:.3f} ({s['ratio_min']:.2f}–{s['ratio_max']:.2f}) "
               f"| {s['z_mean']:+.2f} | {s['z_rms']:.2f} |")
+    if args.unselected:
+        print("\n| control candidate | runs | degrees of freedom | mean Wald | mean chi-squared drop |\n|---|---|---|---|---|")
+        for name in dict.fromkeys(c[0] for c in controls):
+            mine = [c for c in controls if c[0] == name]
+            dofs = sorted({c[1] for c in mine})
+            print(f"| {name} | {len(mine)} | {'/'.join(map(str, dofs))} | {statistics.fmean(c[2] for c in mine):.2f} "
+                  f"| {statistics.fmean(c[3] for c in mine):.2f} |")
     return 0
 
 
