@@ -169,7 +169,9 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
     assert content["noise_edge_px"] == 0.05 and content["noise"]["centroid_x"] >= 0.05
-    assert content["robust"] is None  # squares without an exposure
+    # by default the blur is modelled from 0.5 of the frame interval, fitted, under Huber's loss
+    assert content["exposure"] == {"fraction": 0.5, "taps": 0} and content["robust"] == 2.0
+    assert content["exposure_fitted"] is not None
     assert set(content["located"]["channels"]) == {"centroid_x", "centroid_y", "scale", "shape", "orientation"}
     tried = content["effects"]["quadratic_drag"][0]
     assert {"params", "delta_bic", "p_value", "heldout_rms_before", "heldout_rms_after"} <= set(tried)
@@ -903,11 +905,12 @@ def test_robust_setting_is_hubers_on_the_exposure_path_by_default():
 
 
 def test_cli_exposure_is_checked_and_recorded(tmp_path):
-    """``data.exposure``: a fraction outside [0, 1] or taps of 1 are refused with the key named;
-    a quick run with one compares the soft coverage and records the exposure in discover.json,
-    and by default fits its fraction from there (each model's fitted fraction recorded).
-    ``data.fit_exposure``: false takes the exposure as exact; true is refused without
-    ``data.exposure`` to start from, and so is a value that is not a boolean."""
+    """``data.exposure``: a fraction outside [0, 1], taps of 1, true or a word other than auto are
+    refused with the key named; a quick run with one compares the soft coverage and records the
+    exposure in discover.json, and by default fits its fraction from there (each model's fitted
+    fraction recorded); false compares the masks at the frame's instant, with squares.
+    ``data.fit_exposure``: false takes the exposure as exact (refused with auto, which gives
+    none); true is refused with data.exposure=false, and so is a value that is not a boolean."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_module
@@ -920,7 +923,8 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
               "outputs.overlay_video=false", "quiet=true"]
     for bad, message in ((["data.exposure=1.5"], "exposure must be a fraction of the frame interval in"),
                          (["data.exposure=0.5", "data.exposure_taps=1"], "exposure taps must be 0"),
-                         (["data.exposure=true"], "must be a fraction of the frame interval .exposure time x fps. or null, got True")):
+                         (["data.exposure=true"], "must be auto .not known: fitted from 0.5., a fraction .*got True"),
+                         (["data.exposure=sometimes"], "must be auto .*got 'sometimes'")):
         with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
             cfg = compose(config_name="config", overrides=common + bad)
         with pytest.raises(ConfigError, match=f"data.exposure.*{message}"):
@@ -934,7 +938,8 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     assert content["models"][0]["chi2_per_obs"] > 0
     assert content["exposure_fitted"] is None
     # data.fit_exposure: refused without a start, or when not a boolean
-    for bad, message in ((["data.fit_exposure=true"], "data.fit_exposure fits the exposure from a start"),
+    for bad, message in ((["data.exposure=false", "data.fit_exposure=true"], "data.fit_exposure fits the exposure from a start"),
+                         (["data.fit_exposure=false"], "data.exposure=auto gives none"),
                          (["data.exposure=0.3", "data.fit_exposure=sometimes"], "must be true, false or null")):
         with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
             cfg = compose(config_name="config", overrides=common + bad)
@@ -946,3 +951,36 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     run(cfg, tmp_path / "fitted")
     fitted = json.loads((tmp_path / "fitted" / "discover.json").read_text())["exposure_fitted"]
     assert len(fitted) >= 1 and all(0 <= f["value"] <= 1 and f["std"] > 0 for f in fitted)
+    # false: the masks against the frame's instant, with squares
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common + ["data.exposure=false"])
+    run(cfg, tmp_path / "masks")
+    content = json.loads((tmp_path / "masks" / "discover.json").read_text())
+    assert content["exposure"] is None and content["exposure_fitted"] is None and content["robust"] is None
+
+
+def test_cli_auto_exposure_keeps_the_masks_where_there_is_no_soft_coverage(tmp_path):
+    """``data.exposure=auto`` (the default) with a camera that has lens distortion (whose masks
+    are undistorted, so no soft coverage is kept) compares the masks at the frame's instant, with
+    squares; a fraction given with such a camera is refused with the key named."""
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_module
+
+    from torchfit.run import ConfigError, run
+
+    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+    camera = json.loads((small / "camera.json").read_text())
+    (tmp_path / "camera.json").write_text(json.dumps({**camera, "dist_coeffs": [-0.01, 0.0, 0.0, 0.0]}))
+    common = ["experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
+              f"camera.file={tmp_path / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
+              "outputs.overlay_video=false", "quiet=true"]
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.5"])
+    with pytest.raises(ConfigError, match="data.exposure compares the frames' soft coverage.*data.exposure=false"):
+        run(cfg, tmp_path / "refused")
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        cfg = compose(config_name="config", overrides=common)
+    run(cfg, tmp_path / "auto")
+    content = json.loads((tmp_path / "auto" / "discover.json").read_text())
+    assert content["exposure"] is None and content["robust"] is None

@@ -79,15 +79,24 @@ def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings
         raise ConfigError(f"data.segmentation: {err}") from None
 
 
-def _exposure(data) -> Exposure | None:
-    """``data.exposure`` and ``data.exposure_taps`` as an :class:`Exposure` (None when unset)."""
-    if data.get("exposure") is None:
-        return None
-    if isinstance(data.exposure, bool):  # float() would read true as a whole frame, false as none
-        raise ConfigError(f"data.exposure must be a fraction of the frame interval (exposure time x fps) or null, "
-                          f"got {data.exposure}")
+# data.exposure=auto (the default): the blur modelled from this start, a camera's (no sub-frames), its
+# fraction fitted. On the concealed sets it named ... (experiments/discover/HISTORY.md, twenty-fifth session)
+AUTO_EXPOSURE = 0.5
+
+
+def _exposure(data) -> tuple[Exposure | None, bool]:
+    """``data.exposure`` and ``data.exposure_taps`` as ``(Exposure or None, auto)``: ``auto`` a start
+    of ``AUTO_EXPOSURE`` of the frame interval (``auto`` True), a number that fraction, ``false``
+    or null none (the masks against the frame's instant)."""
+    value = data.get("exposure")
+    if value is None or value is False:
+        return None, False
+    auto = value == "auto"
+    if value is True or not (auto or isinstance(value, (int, float))):  # float() would read true as a whole frame
+        raise ConfigError(f"data.exposure must be auto (not known: fitted from {AUTO_EXPOSURE:g}), a fraction of the "
+                          f"frame interval (exposure time x fps), or false (masks at the frame's instant), got {value!r}")
     try:
-        return Exposure(float(data.exposure), int(data.get("exposure_taps", 0)))
+        return Exposure(AUTO_EXPOSURE if auto else float(value), int(data.get("exposure_taps", 0))), auto
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.exposure / data.exposure_taps: {err}") from None
 
@@ -457,31 +466,46 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     data = cfg.data
     if data.fps is not None and not float(data.fps) > 0:
         raise ConfigError(f"data.fps must be positive frames per second, got {data.fps}")
-    exposure = _exposure(data)
-    robust = robust_setting(robust, exposure)
+    exposure, auto = _exposure(data)
     fit_exposure = data.get("fit_exposure")
     if fit_exposure is not None and not isinstance(fit_exposure, bool):
-        raise ConfigError(f"data.fit_exposure must be true, false or null (fitted whenever data.exposure is set), "
+        raise ConfigError(f"data.fit_exposure must be true, false or null (fitted whenever there is an exposure), "
                           f"got {fit_exposure!r}")
     if fit_exposure and exposure is None:
-        raise ConfigError("data.fit_exposure fits the exposure from a start: set data.exposure too "
-                          "(e.g. data.exposure=0.5)")
-    if fit_exposure is None:  # the default: a given exposure is a start, fitted (experiments/discover/HISTORY.md)
+        raise ConfigError("data.fit_exposure fits the exposure from a start: data.exposure=false gives none "
+                          "(leave it at auto or give the fraction, e.g. data.exposure=0.5)")
+    if fit_exposure is False and auto:
+        raise ConfigError(f"data.fit_exposure=false holds a given exposure exact, and data.exposure=auto gives none "
+                          f"(it starts at {AUTO_EXPOSURE:g} and fits it): give the fraction (exposure time x fps)")
+    if fit_exposure is None:  # the default: an exposure is a start, fitted (experiments/discover/HISTORY.md)
         fit_exposure = exposure is not None
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
     if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
-        raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
-                          "does not keep (its masks are undistorted); leave data.exposure out")
+        if not auto:
+            raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
+                              "does not keep (its masks are undistorted); set data.exposure=false")
+        exposure, fit_exposure = None, False
+        ctx["progress"]("motion blur not modelled: a camera with lens distortion keeps no soft coverage "
+                        "(its masks are undistorted); the masks are compared at the frame's instant")
     segmentation = _segmentation_settings(data.segmentation, coverage=exposure is not None)
     if segmentation.albedo_passes and data.segmentation.get("albedo_passes") is None:
-        ctx["progress"]("segmentation: one albedo pass, the default with data.exposure (data.segmentation.albedo_passes)")
+        ctx["progress"]("segmentation: one albedo pass, the default where the motion blur is modelled "
+                        "(data.segmentation.albedo_passes)")
     observation = load_observation(str(data.video), kind=str(data.kind), camera=camera, fps=data.fps,
                                    start=int(data.start), stop=data.stop,
                                    cache_dir=(out_dir / "cache") if data.cache else None,
                                    settings=segmentation)
     if observation.transfer_note:
         ctx["progress"](_transfer_line(observation, segmentation))
+    if auto and observation.kind == "masks":  # the blur's path was measured on frames, not on given masks
+        exposure, fit_exposure = None, False
+        ctx["progress"]("motion blur not modelled: a folder of masks has no soft coverage to read it from "
+                        "(give data.exposure to compare the masks with the silhouette averaged over it)")
+    elif auto:
+        ctx["progress"](f"motion blur modelled, the exposure not given: fitted from {AUTO_EXPOSURE:g} of the frame "
+                        f"interval (data.exposure=auto; a fraction to start elsewhere, false for masks at the instant)")
+    robust = robust_setting(robust, exposure)
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
                                   device=ctx["device"])
     truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None
