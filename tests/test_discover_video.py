@@ -1,6 +1,7 @@
 """Video discover: effects inside the silhouette fit (render, refine) and the selection on video."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,22 @@ from torchfit.rotation import axis_angle_to_quat
 from torchfit.search import Candidates, Problem, candidate_losses, refine
 from torchfit.shape import load_shape
 from torchfit.video import _boxes
+
+
+SMALL = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
+
+
+def _quick_discover(*overrides: str, camera: Path | None = None, overlay: bool = False):
+    """The composed config of a quick ``experiment=discover_video`` run on the small shipped
+    T-handle (the first candidate, two refit iterations, the quick search), with ``overrides``."""
+    from hydra import compose, initialize_config_module
+
+    common = ["experiment=discover_video", f"data.video={SMALL / 'video.mp4'}", f"object.mesh={SMALL / 'mesh.obj'}",
+              f"camera.file={camera or SMALL / 'camera.json'}", "search=quick", "params.quick=true",
+              "params.holdout=0.2", f"outputs.overlay_video={str(overlay).lower()}", "quiet=true"]
+    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
+        return compose(config_name="config", overrides=common + list(overrides))
+
 
 F64 = torch.float64
 
@@ -152,19 +169,11 @@ def test_full_frame_render_of_the_true_model_draws_the_recording(effect, value, 
 
 
 def test_cli_video_discover_writes_the_contract_files(tmp_path):
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     from torchfit.run import run
 
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[
-            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-            f"camera.file={small / 'camera.json'}", f"data.truth={small / 'truth.json'}", "search=quick",
-            "params.quick=true", "params.holdout=0.2", "params.edge_px=0.05", "outputs.overlay_video=true",
-            "params.heldout_margin=6", "quiet=true"])
+    small = SMALL
+    cfg = _quick_discover(f"data.truth={small / 'truth.json'}", "params.edge_px=0.05", "params.heldout_margin=6",
+                          overlay=True)
     summary = run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
@@ -201,21 +210,12 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
 def test_verdict_is_withheld_when_the_final_fit_is_poor(tmp_path, monkeypatch):
     """An effect that passes the criterion is not named when the final model still explains the
     silhouettes poorly (mean IoU below MIN_IOU): it is reported as withheld."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     import torchfit.discover_video as dv
     from torchfit.run import run
 
     monkeypatch.setattr(dv, "MIN_IOU", 1.01)  # no fit reaches it
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[
-            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-            f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
-            "params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.evidence_blocks=1", "params.max_effects=1",
-            "outputs.overlay_video=false", "quiet=true"])
+    cfg = _quick_discover("params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.evidence_blocks=1",
+                          "params.max_effects=1")
     run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == [] and content["verdict_withheld"] == ["quadratic_drag"]
@@ -241,19 +241,9 @@ def test_report_says_which_frames_an_unnamed_candidate_rests_on(tmp_path):
     """With no threshold on ΔBIC but the evidence cut into thirds, drag on the small T-handle
     (which hides nothing) is not named: its ΔBIC without its weakest third is not positive, and
     the report gives that third's frames."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     from torchfit.run import run
 
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[
-            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-            f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
-            "params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.max_effects=1",
-            "outputs.overlay_video=false", "quiet=true"])
+    cfg = _quick_discover("params.min_delta_bic=-1e9", "params.min_heldout_gain=-1e9", "params.max_effects=1")
     run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     score = content["effects"]["quadratic_drag"][0]
@@ -444,10 +434,6 @@ def test_edge_term_of_the_noise_floor_is_the_one_given(tmp_path):
     """``edge_px`` (masks without segmentation error want less than the segmentation's EDGE_PX) is
     the edge term of every channel's floor: the centroid's floor is hypot(jitter, edge_px), so it
     falls with the term; a negative or non-finite term is refused, by the class and by the CLI."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     import torchfit.discover_video as dv
     from torchfit.run import ConfigError, run
 
@@ -466,11 +452,7 @@ def test_edge_term_of_the_noise_floor_is_the_one_given(tmp_path):
     for bad in (-0.01, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="edge_px must be a non-negative"):
             dv.VideoProblem(problem, candidates=(), edge_px=bad)
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[
-            "experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-            f"camera.file={small / 'camera.json'}", "params.edge_px=-0.1", "quiet=true"])
+    cfg = _quick_discover("params.edge_px=-0.1")
     with pytest.raises(ConfigError, match="params.edge_px must be a non-negative edge accuracy in pixels, got -0.1"):
         run(cfg, tmp_path)
 
@@ -853,32 +835,20 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused.
     ``params.robust``: a positive number is recorded and said in the report; zero or a word,
     refused with the key named. (One run takes both options.)"""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
 
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    common = ["experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-              f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
-              "outputs.overlay_video=false", "quiet=true"]
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["params.speed_noise=sometimes"])
+    cfg = _quick_discover("params.speed_noise=sometimes")
     with pytest.raises(ConfigError, match="params.speed_noise must be true or false, got 'sometimes'"):
         run(cfg, tmp_path / "bad")
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["params.heldout_margin=-2"])
+    cfg = _quick_discover("params.heldout_margin=-2")
     with pytest.raises(ConfigError, match="heldout_margin must be a deviance >= 0"):
         run(cfg, tmp_path / "bad_margin")
     for bad in ("0", "huber"):
-        with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-            cfg = compose(config_name="config", overrides=common + [f"params.robust={bad}"])
+        cfg = _quick_discover(f"params.robust={bad}")
         with pytest.raises(ConfigError, match=f"params.robust must be Huber's threshold .* got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_robust_{bad}")
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["params.speed_noise=true", "params.robust=2"])
+    cfg = _quick_discover("params.speed_noise=true", "params.robust=2")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert 0.0 <= content["noise_speed_share"] <= SPEED_NOISE_MAX
@@ -911,26 +881,16 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     fraction recorded); false compares the masks at the frame's instant, with squares.
     ``data.fit_exposure``: false takes the exposure as exact (refused with auto, which gives
     none); true is refused with data.exposure=false, and so is a value that is not a boolean."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     from torchfit.run import ConfigError, run
 
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    common = ["experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-              f"camera.file={small / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
-              "outputs.overlay_video=false", "quiet=true"]
     for bad, message in ((["data.exposure=1.5"], "exposure must be a fraction of the frame interval in"),
                          (["data.exposure=0.5", "data.exposure_taps=1"], "exposure taps must be 0"),
                          (["data.exposure=true"], "must be auto .not known: fitted from 0.5., a fraction .*got True"),
                          (["data.exposure=sometimes"], "must be auto .*got 'sometimes'")):
-        with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-            cfg = compose(config_name="config", overrides=common + bad)
+        cfg = _quick_discover(*bad)
         with pytest.raises(ConfigError, match=f"data.exposure.*{message}"):
             run(cfg, tmp_path / "bad")
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.5", "data.fit_exposure=false"])
+    cfg = _quick_discover("data.exposure=0.5", "data.fit_exposure=false")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert content["exposure"] == {"fraction": 0.5, "taps": 0}
@@ -941,19 +901,16 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     for bad, message in ((["data.exposure=false", "data.fit_exposure=true"], "data.fit_exposure fits the exposure from a start"),
                          (["data.fit_exposure=false"], "data.exposure=auto gives none"),
                          (["data.exposure=0.3", "data.fit_exposure=sometimes"], "must be true, false or null")):
-        with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-            cfg = compose(config_name="config", overrides=common + bad)
+        cfg = _quick_discover(*bad)
         with pytest.raises(ConfigError, match=message):
             run(cfg, tmp_path / "bad_fit")
     # by default the fraction is fitted from data.exposure and recorded per model
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.3"])
+    cfg = _quick_discover("data.exposure=0.3")
     run(cfg, tmp_path / "fitted")
     fitted = json.loads((tmp_path / "fitted" / "discover.json").read_text())["exposure_fitted"]
     assert len(fitted) >= 1 and all(0 <= f["value"] <= 1 and f["std"] > 0 for f in fitted)
     # false: the masks against the frame's instant, with squares
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.exposure=false"])
+    cfg = _quick_discover("data.exposure=false")
     run(cfg, tmp_path / "masks")
     content = json.loads((tmp_path / "masks" / "discover.json").read_text())
     assert content["exposure"] is None and content["exposure_fitted"] is None and content["robust"] is None
@@ -963,24 +920,14 @@ def test_cli_auto_exposure_keeps_the_masks_where_there_is_no_soft_coverage(tmp_p
     """``data.exposure=auto`` (the default) with a camera that has lens distortion (whose masks
     are undistorted, so no soft coverage is kept) compares the masks at the frame's instant, with
     squares; a fraction given with such a camera is refused with the key named."""
-    from pathlib import Path
-
-    from hydra import compose, initialize_config_module
-
     from torchfit.run import ConfigError, run
 
-    small = Path(__file__).resolve().parents[1] / "torchfit" / "recordings" / "tshape_small"
-    camera = json.loads((small / "camera.json").read_text())
+    camera = json.loads((SMALL / "camera.json").read_text())
     (tmp_path / "camera.json").write_text(json.dumps({**camera, "dist_coeffs": [-0.01, 0.0, 0.0, 0.0]}))
-    common = ["experiment=discover_video", f"data.video={small / 'video.mp4'}", f"object.mesh={small / 'mesh.obj'}",
-              f"camera.file={tmp_path / 'camera.json'}", "search=quick", "params.quick=true", "params.holdout=0.2",
-              "outputs.overlay_video=false", "quiet=true"]
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common + ["data.exposure=0.5"])
+    cfg = _quick_discover("data.exposure=0.5", camera=tmp_path / "camera.json")
     with pytest.raises(ConfigError, match="data.exposure compares the frames' soft coverage.*data.exposure=false"):
         run(cfg, tmp_path / "refused")
-    with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
-        cfg = compose(config_name="config", overrides=common)
+    cfg = _quick_discover(camera=tmp_path / "camera.json")
     run(cfg, tmp_path / "auto")
     content = json.loads((tmp_path / "auto" / "discover.json").read_text())
     assert content["exposure"] is None and content["robust"] is None
