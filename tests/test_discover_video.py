@@ -931,3 +931,16 @@ def test_cli_auto_exposure_keeps_the_masks_where_there_is_no_soft_coverage(tmp_p
     run(cfg, tmp_path / "auto")
     content = json.loads((tmp_path / "auto" / "discover.json").read_text())
     assert content["exposure"] is None and content["robust"] is None
+
+
+def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():
+    """A named clock reads as the true frame rate (factor times the stated fps), a named offset in
+    mm; effects not named get no line."""
+    from torchfit.discover_video import plain_unit_lines
+
+    params = {"time_scale": {"time_scale": {"value": 0.975, "std": 0.002, "unit": "1"}},
+              "com_offset": {"offset": {"value": [0.0056, -0.0043, 0.0], "std": [0.0004, 0.0005, 0.002], "unit": "m"}}}
+    lines = plain_unit_lines(["time_scale", "com_offset"], params, 60.0)
+    assert lines == ["  true frame rate: 58.50 ± 0.12 fps (60 fps stated)",
+                     "  centre of mass: (5.6, -4.3, 0.0) ± (0.4, 0.5, 2.0) mm (body frame) from where uniform density puts it"]
+    assert plain_unit_lines(["quadratic_drag"], params, 60.0) == []

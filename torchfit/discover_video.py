@@ -1513,6 +1513,23 @@ def withheld_line(verdict: Sequence[str], final_iou: float, baseline_iou: float 
             "outside the vocabulary.")
 
 
+def plain_unit_lines(verdict: Sequence[str], params: dict, stated_fps: float) -> list[str]:
+    """The named clock and centre-of-mass offset in the units a person films and weighs in: the
+    true frame rate in fps for ``time_scale`` (its factor times ``stated_fps``), the offset in mm.
+    ``params`` as :func:`torchfit.discover.parameter_lines` takes them."""
+    lines = []
+    clock = params.get("time_scale", {}).get("time_scale") if "time_scale" in verdict else None
+    if clock is not None:
+        lines.append(f"  true frame rate: {clock['value'] * stated_fps:.2f} ± {clock['std'] * stated_fps:.2f} fps "
+                     f"({stated_fps:.4g} fps stated)")
+    offset = params.get("com_offset", {}).get("offset") if "com_offset" in verdict else None
+    if offset is not None:
+        lines.append("  centre of mass: (" + ", ".join(f"{1e3 * v:.1f}" for v in offset["value"]) + ") ± ("
+                     + ", ".join(f"{1e3 * v:.1f}" for v in offset["std"]) + ") mm (body frame) from where uniform "
+                     "density puts it")
+    return lines
+
+
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
                   unexplained: dict | None = None, mismatch: dict | None = None,
                   baseline_iou: float | None = None) -> list[str]:
@@ -1534,6 +1551,8 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         if withheld_iou is not None and selection.verdict else "Verdict"
     left = unexplained is not None and bool(unexplained["channels"])
     lines += verdict_lines(selection, final.params, label, explained=not left)
+    times = video.problem.times.detach().cpu().numpy()
+    lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape))
