@@ -479,15 +479,13 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if fit_exposure is False and auto:
         raise ConfigError(f"data.fit_exposure=false holds a given exposure exact, and data.exposure=auto gives none "
                           f"(it starts at {AUTO_EXPOSURE:g} and fits it): give the fraction (exposure time x fps)")
-    if fit_exposure is None:  # the default: an exposure is a start, fitted (experiments/discover/HISTORY.md)
-        fit_exposure = exposure is not None
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
     if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
         if not auto:
             raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
                               "does not keep (its masks are undistorted); set data.exposure=false")
-        exposure, fit_exposure = None, False
+        exposure = None
         ctx["progress"]("motion blur not modelled: a camera with lens distortion keeps no soft coverage "
                         "(its masks are undistorted); the masks are compared at the frame's instant")
     segmentation = _segmentation_settings(data.segmentation, coverage=exposure is not None)
@@ -501,12 +499,14 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if observation.transfer_note:
         ctx["progress"](_transfer_line(observation, segmentation))
     if auto and observation.kind == "masks":  # the blur's path was measured on frames, not on given masks
-        exposure, fit_exposure = None, False
+        exposure = None
         ctx["progress"]("motion blur not modelled: a folder of masks has no soft coverage to read it from "
                         "(give data.exposure to compare the masks with the silhouette averaged over it)")
     elif auto:
         ctx["progress"](f"motion blur modelled, the exposure not given: fitted from {AUTO_EXPOSURE:g} of the frame "
                         f"interval (data.exposure=auto; a fraction to start elsewhere, false for masks at the instant)")
+    # an exposure is a start, fitted unless data.fit_exposure=false (experiments/discover/HISTORY.md)
+    fit_exposure = exposure is not None and fit_exposure is not False
     robust = robust_setting(robust, exposure)
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
                                   device=ctx["device"])

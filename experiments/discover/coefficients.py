@@ -32,6 +32,21 @@ HERE = Path(__file__).resolve().parent
 SIX = (0, 1, 2, 3, 4, 5)
 
 
+def _scalar_rows(truth: dict, fitted_of) -> list[tuple[str, str, float, float, float]]:
+    """``(effect, parameter, truth, fitted, std)`` of each hidden scalar parameter in ``truth``
+    (``{effect: {parameter: value}}``) that ``fitted_of(effect)`` (``{parameter: {"value", "std"}}``)
+    holds; none for a parameter whose truth is 0, a vector, or not fitted."""
+    rows = []
+    for effect, params in truth.items():
+        fitted = fitted_of(effect)
+        for name, value in params.items():
+            got = fitted.get(name)
+            if got is None or isinstance(value, list) or isinstance(got["value"], list) or value == 0:
+                continue
+            rows.append((effect, name, float(value), float(got["value"]), float(got["std"])))
+    return rows
+
+
 def coefficient_rows(content: dict) -> list[tuple[str, str, float, float, float]]:
     """``(effect, parameter, truth, fitted, std)`` of a run's hidden scalar parameters when its
     verdict is exactly the hidden effects (none otherwise, and none for a parameter whose truth is
@@ -40,32 +55,16 @@ def coefficient_rows(content: dict) -> list[tuple[str, str, float, float, float]
     if not truth or sorted(content["verdict"]) != sorted(truth):
         return []
     fitted = content["models"][-1]["params"]
-    rows = []
-    for effect, params in truth.items():
-        for name, value in params.items():
-            got = fitted.get(effect, {}).get(name)
-            if got is None or isinstance(value, list) or isinstance(got["value"], list) or value == 0:
-                continue
-            rows.append((effect, name, float(value), float(got["value"]), float(got["std"])))
-    return rows
+    return _scalar_rows(truth, lambda effect: fitted.get(effect, {}))
 
 
 def unselected_rows(content: dict) -> list[tuple[str, str, float, float, float]]:
     """``(effect, parameter, truth, fitted, std)`` of a run's hidden scalar parameters from the
     first round's fit of the hidden effect alone, whatever the verdict (none for a control, a
     vector, a truth of 0, or a run that did not score the effect)."""
-    rows = []
-    for effect, params in (content.get("truth_effects") or {}).items():
-        rounds = content.get("effects", {}).get(effect) or []
-        if not rounds:
-            continue
-        fitted = rounds[0]["params"].get(effect, {})
-        for name, value in params.items():
-            got = fitted.get(name)
-            if got is None or isinstance(value, list) or isinstance(got["value"], list) or value == 0:
-                continue
-            rows.append((effect, name, float(value), float(got["value"]), float(got["std"])))
-    return rows
+    effects = content.get("effects", {})
+    truth = {e: p for e, p in (content.get("truth_effects") or {}).items() if effects.get(e)}
+    return _scalar_rows(truth, lambda effect: effects[effect][0]["params"].get(effect, {}))
 
 
 def control_rows(content: dict) -> list[tuple[str, int, float, float]]:
