@@ -26,7 +26,7 @@ def _discover(effects, params, out_dir=None, **kw):
 def test_control_with_nothing_missing_says_nothing(tmp_path):
     content = _discover([], {}, out_dir=tmp_path)
     assert content["verdict"] == []
-    assert "Verdict: nothing is missing" in (tmp_path / "report.txt").read_text()
+    assert "Verdict: nothing detected" in (tmp_path / "report.txt").read_text()
     assert content["located"]["summary"] == "at noise level: along velocity, vertical normal, lateral"
     assert content["models"][0]["rms_m"] < 1.2 * content["noise_rms_m"]
     assert all(not entry["passes"] for tries in content["effects"].values() for entry in tries)

@@ -655,15 +655,16 @@ def parameter_lines(verdict: Sequence[str], params: dict) -> list[str]:
 
 def verdict_lines(selection: Selection, params: dict, label: str = "Verdict", explained: bool = True) -> list[str]:
     """The verdict in words, then the named effects' parameters (:func:`parameter_lines`).
-    ``explained``: False when the final model still leaves a mismatch above the noise, so an
-    empty verdict does not say that nothing is missing."""
+    ``explained``: False when the final model still leaves a mismatch above the noise. An empty
+    verdict never says that nothing is missing, only that nothing was detected: an effect below
+    the data's detection limits (:func:`limits_line`) is not ruled out."""
     if not selection.verdict:
         indist = [s.indistinguishable for s in selection.steps if s.indistinguishable]
         if indist:
             return [f"{label}: {' or '.join(indist[0])} — indistinguishable on this data; nothing named."]
         if not explained:
             return [f"{label}: no effect of the library beats the noise."]
-        return [f"{label}: nothing is missing — no effect beats the noise."]
+        return [f"{label}: nothing detected — no effect beats the noise (a smaller one is not ruled out)."]
     return [f"{label}: {', then '.join(selection.verdict)}.", *parameter_lines(selection.verdict, params)]
 
 

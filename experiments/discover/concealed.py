@@ -300,27 +300,36 @@ MASKS = {"segmented": "", "exact": "_true_masks"} | {f"exact, floor {edge:g} px"
                                                        for edge in EXACT_EDGES}
 
 
-def below_limit(r: dict) -> bool:
-    """Whether a recording's hidden effect is below what its clip can show, by the run's own
-    account: not named, the effect one scalar parameter (a drag or lift coefficient, a clock),
-    and that parameter's detection limit in the run (``detectable_above``, what discover
-    reports as "what this clip cannot rule out") larger than its true departure from the null.
-    ``r`` is the recording's :func:`row`: from a ``--true-masks`` run, the limit of the engine's
-    exact masks; from a segmented run, the video's. Effects of several numbers (a lens's k1 and
-    k2, an offset) are never called below their limit: one number per parameter does not say
+def limit_ratio(r: dict) -> float | None:
+    """A recording's hidden effect against what its clip can show, by the run's own account: the
+    true parameter's departure from its null over that parameter's detection limit in the run
+    (``detectable_above``, what discover reports as "what this clip cannot rule out"; above 1 the
+    clip could show it). ``r`` is the recording's :func:`row`: from a ``--true-masks`` run, the
+    limit of the engine's exact masks; from a segmented run, the video's. None unless exactly one
+    effect with one scalar parameter is hidden (a drag or lift coefficient, a clock): for effects
+    of several numbers (a lens's k1 and k2, an offset) one number per parameter does not say
     whether their combination would pass (and runs before 2026-11-26's eighth session stored
     marginal limits, about three times too large for k1 and k2)."""
-    if r["right"] or len(r["truth"]) != 1:
-        return False
+    if len(r["truth"]) != 1:
+        return None
     (effect,) = r["truth"]
     limits, truth = r["detectable_above"].get(effect, {}), r["truth_effects"][effect]
     if len(limits) != 1 or len(truth) != 1:
-        return False
+        return None
     (pname, limit), = limits.items()
     true, null = truth[pname], EFFECTS[effect].null_params[pname]
-    if isinstance(limit, list) or isinstance(true, list):
+    if isinstance(limit, list) or isinstance(true, list) or limit is None:
+        return None
+    return abs(true - null) / limit if limit > 0 else math.inf
+
+
+def below_limit(r: dict) -> bool:
+    """Whether a recording's hidden effect, not named, is below what its clip can show by the
+    run's own account (:func:`limit_ratio` below 1; never for effects of several numbers)."""
+    if r["right"]:
         return False
-    return limit > abs(true - null)
+    ratio = limit_ratio(r)
+    return ratio is not None and ratio < 1
 
 
 # How a recording's run ended, from the best to the worst (:func:`outcome`)
