@@ -310,25 +310,34 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     assert not conc.below_limit(conc.row("lens_x", lens))  # two numbers: never called below
 
 
-def test_limits_checks_the_runs_own_limit_against_what_it_named(tmp_path):
-    """limits.py: the truth over the run's limit for a single scalar effect (None for a control
-    or a lens), counted per bin with whether the run named exactly the hidden effect; a run that
-    names the effect and a second one counts as not named."""
+def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
+    """standing.py: the truth over the run's limit for a single scalar effect (None for a control
+    or a lens), counted per bin with whether the run named exactly the hidden effect (a second
+    name counts as not named); the targets table sums the sets."""
     sys.path.insert(0, str(CONCEALED.parent))
-    limits = _load("limits", CONCEALED.parent / "limits.py")
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    standing = _load("standing", CONCEALED.parent / "standing.py")
     drag = lambda cd: {"quadratic_drag": {"drag_coefficient": cd}}  # limit 0.3 in _content
-    assert limits.cases(_content([], drag(0.12)), "drag_x", tmp_path) == (pytest.approx(0.4), False)
-    assert limits.cases(_content(["quadratic_drag"], drag(0.6)), "drag_x", tmp_path) == (pytest.approx(2.0), True)
-    assert limits.cases(_content(["quadratic_drag", "time_scale"], drag(0.6)), "drag_x", tmp_path)[1] is False
-    assert limits.cases(_content([], {}), "control_x", tmp_path) is None
-    clock = limits.cases(_content(["time_scale"], {"time_scale": {"time_scale": 0.985}}), "time_x", tmp_path)
-    assert clock == (pytest.approx(1.5), True)  # |0.985 - 1| / 0.01
+    case = lambda verdict, truth, name="drag_x": standing.cases(conc.row(name, _content(verdict, truth)))
+    assert case([], drag(0.12)) == (pytest.approx(0.4), False)
+    assert case(["quadratic_drag"], drag(0.6)) == (pytest.approx(2.0), True)
+    assert case(["quadratic_drag", "time_scale"], drag(0.6))[1] is False
+    assert case([], {}, "control_x") is None
+    assert case(["time_scale"], {"time_scale": {"time_scale": 0.985}}, "time_x") == (pytest.approx(1.5), True)
     lens = _content([], {"lens_distortion": {"k1": -0.05, "k2": 0.01}})
     lens["effects"]["lens_distortion"] = [{"delta_bic": 1.0, "detectable_above": {"k1": 0.2, "k2": 0.5}}]
-    assert limits.cases(lens, "lens_x", tmp_path) is None
-    rows = limits.tally([(0.4, False), (0.7, True), (1.0, True), (1.2, False), (2.5, True)])
+    assert standing.cases(conc.row("lens_x", lens)) is None
+    rows = standing.tally([(0.4, False), (0.7, True), (1.0, True), (1.2, False), (2.5, True)])
     assert rows == [("0–0.5", 1, 0), ("0.5–1", 1, 1), ("1–1.5", 2, 1), ("1.5–2", 0, 0), ("≥ 2", 1, 1),
                     ("**below 1**", 2, 1), ("**1 or above**", 3, 2)]
+    by_set = {"first": {"drag_a": conc.row("drag_a", _content(["quadratic_drag"], drag(0.6))),
+                        "control_x": conc.row("control_x", _content([], {}))},
+              "fresh 1": {"drag_a": conc.row("drag_a", _content([], drag(0.12)))}}
+    table = standing.targets(by_set).splitlines()
+    assert table[2].startswith("| first | 1 of 1 | 1 of 1 | none |")
+    assert table[3].startswith("| fresh 1 | 0 of 1 | 0 of 0 | none |")
+    assert table[4].startswith("| **all** | 1 of 2 | 1 of 1 | none |")
+    assert standing.limits_table(by_set).splitlines()[-1] == "| **1 or above** | 1 | 1 |"
 
 
 def test_outcome_tells_honest_answers_from_failures(tmp_path):

@@ -360,12 +360,13 @@ def _segmented_runs(root: Path, suffix: str) -> dict:
             for label, name in SETS.items() if (file := root / f"{name}{suffix}" / "summary.json").exists()}
 
 
-def outcomes(root: Path = OUT.parent, suffix: str = "") -> str:
+def outcomes(root: Path = OUT.parent, suffix: str = "", runs: dict | None = None) -> str:
     """How each set's effect cases ended on the segmented video (``suffix``: a variant's results,
-    e.g. ``_crf4``), a column per :data:`OUTCOMES`, each but the first with its recordings."""
+    e.g. ``_crf4``; or ``runs``, ``{set label: {recording: row}}``, given), a column per
+    :data:`OUTCOMES`, each but the first with its recordings."""
     lines = ["| set | " + " | ".join(OUTCOMES) + " |", "|---" * (len(OUTCOMES) + 1) + "|"]
     totals = [0] * len(OUTCOMES)
-    for label, rows in _segmented_runs(root, suffix).items():
+    for label, rows in (runs if runs is not None else _segmented_runs(root, suffix)).items():
         ended: dict = {kind: [] for kind in OUTCOMES}
         for r in rows.values():
             if r["truth"]:
@@ -381,11 +382,12 @@ def outcomes(root: Path = OUT.parent, suffix: str = "") -> str:
 GRID_WORDS = dict(zip(OUTCOMES, ("right", "tie", "below limit", "MISSED", "WITHHELD", "WRONG")))
 
 
-def verdict_grid(root: Path = OUT.parent, suffix: str = "") -> str:
+def verdict_grid(root: Path = OUT.parent, suffix: str = "", runs: dict | None = None) -> str:
     """Every recording against every set on the segmented video (``suffix``: a variant's
-    results), each cell its :func:`outcome` in a word (:data:`GRID_WORDS`; a control's
-    "quiet" or "ALARM") and the names discover gave, from the stored runs (no fitting)."""
-    runs = _segmented_runs(root, suffix)
+    results; or ``runs`` given, as for :func:`outcomes`), each cell its :func:`outcome` in a word
+    (:data:`GRID_WORDS`; a control's "quiet" or "ALARM") and the names discover gave, from the
+    stored runs (no fitting)."""
+    runs = runs if runs is not None else _segmented_runs(root, suffix)
     names = sorted({n for rows in runs.values() for n in rows}, key=lambda n: (n.startswith("control"), n))
     lines = ["| recording | hidden | " + " | ".join(runs) + " |", "|---" * (len(runs) + 2) + "|"]
     for name in names:

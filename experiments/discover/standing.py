@@ -1,0 +1,121 @@
+"""Where discover stands on the concealed sets: targets, how each case ended, and its own limits.
+
+From the stored runs of one variant (no fitting), over the sets asked for:
+
+1. per set, the issue's targets (``concealed.score``): effect cases named right, controls quiet,
+   recordings with a name not hidden, held-out error halved on the right names, drag and lift
+   coefficients within 25 % of the engine's;
+2. how each effect case ended (``concealed.outcome``): named right, a tie that holds the truth,
+   nothing named below the clip's own limit, nothing named above it, withheld, a wrong name;
+3. the verdict grid, every recording against every set;
+4. whether each run's own detection limit says what it names. Every run reports, for each
+   effect it did not name, the size below which that effect would not have passed its criterion
+   on this clip ("What this clip cannot rule out", ``detectable_above``, from the first round,
+   before any name). For every case hiding one effect of one scalar parameter (a drag or lift
+   coefficient, a clock), the true departure from the null over that limit
+   (``concealed.limit_ratio``) against whether the run named exactly that effect. A limit that is
+   right names nearly everything above 1 and little below; one too cautious names much below 1;
+   one that flatters the data misses much above it.
+
+    python experiments/discover/standing.py SUFFIX [--fresh K ...] [--each]
+
+``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>``
+(``_albedo1_exposure0.5_taps0_fitted_huber2`` for the default, '' for the masks); the seven
+blurred sets (the first and fresh 1-6) unless ``--fresh`` names others (0 the first); ``--each``
+lists every scalar case's ratio.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
+
+from concealed import RECORDINGS, limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
+
+SEVEN = (0, 1, 2, 3, 4, 5, 6)
+DEFAULT_SUFFIX = "_albedo1_exposure0.5_taps0_fitted_huber2"
+# the ratio's bins (true departure / the run's limit), each [low, high)
+BINS = ((0.0, 0.5), (0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, float("inf")))
+
+
+def cases(r: dict) -> tuple[float, bool] | None:
+    """``(truth / the run's limit, named right)`` of a recording's ``concealed.row``, or None
+    when no single scalar effect is hidden (a control, a lens, an offset)."""
+    ratio = limit_ratio(r)
+    return None if ratio is None else (ratio, r["right"])
+
+
+def tally(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, int]]:
+    """Per bin of :data:`BINS`, then below 1 and at or above 1: ``(label, cases, named right)``."""
+    def count(low: float, high: float) -> tuple[int, int]:
+        inside = [right for ratio, right in pairs if low <= ratio < high]
+        return len(inside), sum(inside)
+
+    out = [(f"{low:g}–{high:g}" if high != float("inf") else f"≥ {low:g}", *count(low, high)) for low, high in BINS]
+    return out + [("**below 1**", *count(0.0, 1.0)), ("**1 or above**", *count(1.0, float("inf")))]
+
+
+def runs(suffix: str, sets: tuple[int, ...], results: Path = HERE / "results",
+         recordings: Path = RECORDINGS) -> dict:
+    """``{set label: {recording: concealed.row}}`` from each set's stored discover.json files."""
+    out = {}
+    for k in sets:
+        folder = results / f"concealed{f'_fresh{k}' if k else ''}{suffix}"
+        if not folder.is_dir():
+            raise SystemExit(f"no results folder {folder} (run concealed.py for that set and suffix first)")
+        made = recordings.parent / f"{recordings.name}{f'_fresh{k}' if k else ''}"
+        out[f"fresh {k}" if k else "first"] = {
+            path.parent.name: row(path.parent.name, json.loads(path.read_text()), made)
+            for path in sorted(folder.glob("*/discover.json"))}
+    return out
+
+
+def targets(by_set: dict) -> str:
+    """Table 1: the issue's targets per set and over all (``concealed.score``)."""
+    lines = ["| set | right | controls quiet | wrong names | held-out halved | coefficients within 25 % |",
+             "|---|---|---|---|---|---|"]
+    every = [r for rows in by_set.values() for r in rows.values()]
+    for label, rows in [*by_set.items(), ("**all**", {i: r for i, r in enumerate(every)})]:
+        c = score(list(rows.values()))
+        lines.append(f"| {label} | {c['effect_right'][0]} of {c['effect_right'][1]} | {c['controls_quiet'][0]} of "
+                     f"{c['controls_quiet'][1]} | {', '.join(c['wrong_names']) or 'none'} | {c['heldout_halved'][0]} of "
+                     f"{c['heldout_halved'][1]} | {c['coefficients_within_25pc'][0]} of {c['coefficients_within_25pc'][1]} |")
+    return "\n".join(lines)
+
+
+def limits_table(by_set: dict, each: bool = False) -> str:
+    """Table 4: :func:`tally` over every scalar case (with ``each``, every case's line first)."""
+    lines, pairs = [], []
+    for label, rows in by_set.items():
+        for name, r in rows.items():
+            case = cases(r)
+            if case is not None:
+                pairs.append(case)
+                if each:
+                    lines.append(f"{label:8s} {name:16s} truth / limit {case[0]:5.2f}  "
+                                 f"{'named' if case[1] else 'not named'}")
+    lines += ["| truth / the run's own limit | effect cases | named right |", "|---|---|---|"]
+    lines += [f"| {label} | {n} | {right} |" for label, n, right in tally(pairs)]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("suffix", nargs="?", default=DEFAULT_SUFFIX,
+                    help=f"results folder suffix (default {DEFAULT_SUFFIX}, the default path; '' the masks)")
+    ap.add_argument("--fresh", type=int, nargs="+", metavar="K", help="these sets instead of the seven (0 the first)")
+    ap.add_argument("--each", action="store_true", help="list every scalar case's truth over its limit")
+    args = ap.parse_args(argv)
+    by_set = runs(args.suffix, tuple(args.fresh) if args.fresh is not None else SEVEN)
+    print(targets(by_set), outcomes(runs=by_set), verdict_grid(runs=by_set), limits_table(by_set, args.each),
+          sep="\n\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
