@@ -916,21 +916,19 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     assert content["exposure"] is None and content["exposure_fitted"] is None and content["robust"] is None
 
 
-def test_cli_auto_exposure_keeps_the_masks_where_there_is_no_soft_coverage(tmp_path):
-    """``data.exposure=auto`` (the default) with a camera that has lens distortion (whose masks
-    are undistorted, so no soft coverage is kept) compares the masks at the frame's instant, with
-    squares; a fraction given with such a camera is refused with the key named."""
-    from torchfit.run import ConfigError, run
+def test_cli_exposure_with_lens_distortion_models_the_blur_on_the_undistorted_coverage(tmp_path):
+    """A camera with lens distortion keeps the blur's path: its soft coverage is undistorted with
+    the masks (``video._segment``'s ``undistort``), so ``data.exposure=auto`` (the default) and a
+    fraction given both compare it with the averaged silhouette under Huber's loss."""
+    from torchfit.run import run
 
     camera = json.loads((SMALL / "camera.json").read_text())
     (tmp_path / "camera.json").write_text(json.dumps({**camera, "dist_coeffs": [-0.01, 0.0, 0.0, 0.0]}))
-    cfg = _quick_discover("data.exposure=0.5", camera=tmp_path / "camera.json")
-    with pytest.raises(ConfigError, match="data.exposure compares the frames' soft coverage.*data.exposure=false"):
-        run(cfg, tmp_path / "refused")
-    cfg = _quick_discover(camera=tmp_path / "camera.json")
-    run(cfg, tmp_path / "auto")
-    content = json.loads((tmp_path / "auto" / "discover.json").read_text())
-    assert content["exposure"] is None and content["robust"] is None
+    for name, extra in (("auto", ()), ("given", ("data.exposure=0.5",))):
+        run(_quick_discover(*extra, camera=tmp_path / "camera.json"), tmp_path / name)
+        content = json.loads((tmp_path / name / "discover.json").read_text())
+        assert content["exposure"]["fraction"] == 0.5 and content["robust"] == 2.0
+        assert content["exposure_fitted"] and content["models"][0]["chi2_per_obs"] > 0
 
 
 def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():

@@ -22,6 +22,7 @@ from torchfit.video import (
     _read_moov,
     _segment,
     _undistort,
+    _undistort_maps,
     contact_sheet,
     load_observation,
     motion_band,
@@ -611,6 +612,34 @@ def test_soft_coverage_moments_are_the_blurred_frames_own():
     assert abs(relative(soft, None)) < 0.02 and abs(relative(soft, 0)) < 0.06 and abs(relative(soft, 1)) < 0.01
     assert relative(mask, 0) < -0.15
     assert float((soft[1] - exact[1]).abs().max()) < 0.02  # px
+
+
+def test_coverage_moments_are_taken_undistorted_through_a_lens():
+    """With a distorted camera the soft coverage is resampled through the undistortion before its
+    moments are taken: the blurred disc's frames imaged through a barrel lens (k1 -0.3, the disc
+    up to 60 px off the centre) give the undistorted exact coverage's centroid within 0.08 px
+    (measured: at most 0.045) and its area within 2 % (at most -1.1 %), where the moments as
+    imaged are off by up to 3.2 px."""
+    frames, covers = _blurred_disc_frames()
+    height, width = covers.shape[1:]
+    camera = Camera(fx=150.0, fy=150.0, cx=(width - 1) / 2, cy=(height - 1) / 2, width=width, height=height,
+                    dist_coeffs=(-0.3, 0.0, 0.0, 0.0))
+    # imaged through the lens: each distorted pixel shows the scene where the lens maps it from
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    points = np.stack([u, v], -1).reshape(-1, 1, 2)
+    source = cv2.undistortPoints(points, camera.K, np.asarray(camera.dist_coeffs), P=camera.K).reshape(height, width, 2)
+    maps = source[..., 0].astype(np.float32), source[..., 1].astype(np.float32)
+    imaged = np.stack([cv2.remap(f, *maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+                       for f in frames])
+    out = _segment(imaged, SegmentationSettings(albedo_passes=1), _undistort_maps(camera))
+    as_imaged = _segment(imaged, SegmentationSettings(albedo_passes=1))
+    inner = slice(2, -2)  # the first and last frames' background median is the weakest
+    exact = central_moments(torch.as_tensor(raw_moments(covers[inner])))
+    soft = central_moments(torch.as_tensor(out["coverage_moments"][inner]))
+    raw = central_moments(torch.as_tensor(as_imaged["coverage_moments"][inner]))
+    assert float((soft[1] - exact[1]).norm(dim=-1).max()) < 0.08  # px
+    assert float(((soft[0] - exact[0]) / exact[0]).abs().max()) < 0.02
+    assert float((raw[1] - exact[1]).norm(dim=-1).max()) > 1.0
 
 
 def test_clipped_coverage_turns_background_noise_into_mass():

@@ -1303,8 +1303,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     coverage = None
     if exposure is not None:
         if observation.coverage_moments is None:
-            raise ValueError("an exposure needs the frames' soft coverage, which a camera with lens distortion "
-                             "does not keep (its masks are undistorted): leave the exposure out")
+            raise ValueError("an exposure needs the frames' soft coverage (Observation.coverage_moments), "
+                             "which this observation was made without: leave the exposure out")
         coverage = torch.as_tensor(observation.coverage_moments[span])
     video = VideoProblem(problem, candidates=candidates, holdout=settings.holdout, search=search,
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,

@@ -481,13 +481,6 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                           f"(it starts at {AUTO_EXPOSURE:g} and fits it): give the fraction (exposure time x fps)")
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
-    if exposure is not None and any(c != 0 for c in camera.dist_coeffs):
-        if not auto:
-            raise ConfigError("data.exposure compares the frames' soft coverage, which a camera with lens distortion "
-                              "does not keep (its masks are undistorted); set data.exposure=false")
-        exposure = None
-        ctx["progress"]("motion blur not modelled: a camera with lens distortion keeps no soft coverage "
-                        "(its masks are undistorted); the masks are compared at the frame's instant")
     segmentation = _segmentation_settings(data.segmentation, coverage=exposure is not None)
     if segmentation.albedo_passes and data.segmentation.get("albedo_passes") is None:
         ctx["progress"]("segmentation: one albedo pass, the default where the motion blur is modelled "

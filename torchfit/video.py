@@ -69,7 +69,7 @@ BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 COVERAGE_BANDS = ("steps", "motion")
 SHADING_FITS = ("constant", "linear")
-_CACHE_VERSION = 5
+_CACHE_VERSION = 6
 
 
 @dataclass(frozen=True)
@@ -212,8 +212,9 @@ class Observation:
         transfer_note: where that curve came from, a sentence.
         coverage_moments: (T, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` about the image
             origin (pixel centres at integers) of each frame's soft coverage (the mask's own for
-            mask input; zeros where a frame has no object); None where the masks were undistorted
-            (the coverage is not).
+            mask input; zeros where a frame has no object), undistorted with the masks (the
+            coverage resampled through the camera's undistortion before its moments are taken);
+            None for an observation made without them.
     """
 
     masks: np.ndarray
@@ -854,8 +855,12 @@ def raw_moments(images: np.ndarray) -> np.ndarray:
     return np.stack((rows.sum(1), row_u.sum(1), rows @ v, row_uu.sum(1), row_u @ v, rows @ (v * v)), -1)
 
 
-def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
-    """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached."""
+def _segment(frames: np.ndarray, settings: SegmentationSettings,
+             undistort: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+    """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached. ``undistort``:
+    the camera's undistortion maps (:func:`_undistort_maps`), through which each frame's soft
+    coverage is resampled (linearly: a coverage is a fraction, so a point takes the value where
+    it was imaged) before its moments are taken; the masks stay as imaged."""
     background_bgr = _estimate_background(frames, settings)
     background = _luma_chroma(_decode(background_bgr, settings.transfer), settings.chroma_weight)
     frames = _luma_chroma(_decode(frames, settings.transfer), settings.chroma_weight)
@@ -923,8 +928,10 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings) -> dict:
     for t in range(len(frames)):
         if masks[t].any():
             near = motion_band(masks[t], settings.coverage_near_px, velocity[t])
-            cover = np.clip(covers[t], 0.0, 1.0) if settings.coverage_clip else covers[t]
-            cover_moments[t] = raw_moments((cover * near)[None])[0]
+            cover = (np.clip(covers[t], 0.0, 1.0) if settings.coverage_clip else covers[t]) * near
+            if undistort is not None:
+                cover = cv2.remap(cover.astype(np.float32), *undistort, interpolation=cv2.INTER_LINEAR)
+            cover_moments[t] = raw_moments(cover[None])[0]
     return {"masks": masks, "background": background_bgr, "second_frac": second_frac,
             "coverage_moments": cover_moments}
 
@@ -978,13 +985,23 @@ def _flag(masks: np.ndarray, second_frac: np.ndarray, settings: SegmentationSett
 UNDISTORT_SMOOTHING_PX = 0.7
 
 
-def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
-    """Undistort (T, H, W) bool masks with the camera's own K: each mask smoothed by a Gaussian of
-    ``UNDISTORT_SMOOTHING_PX``, resampled linearly, and thresholded at 0.5 (returns (T, H, W) bool)."""
-    maps = cv2.initUndistortRectifyMap(
+def _undistort_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV's (H, W) float32 x and y maps that undistort an image of ``camera`` with its own K
+    (each undistorted pixel's place in the distorted image, for ``cv2.remap``)."""
+    return cv2.initUndistortRectifyMap(
         camera.K, np.asarray(camera.dist_coeffs, np.float64), None, camera.K,
         (camera.width, camera.height), cv2.CV_32FC1,
     )
+
+
+def _distorted(camera: Camera | None) -> bool:
+    return camera is not None and any(c != 0 for c in camera.dist_coeffs)
+
+
+def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
+    """Undistort (T, H, W) bool masks with the camera's own K: each mask smoothed by a Gaussian of
+    ``UNDISTORT_SMOOTHING_PX``, resampled linearly, and thresholded at 0.5 (returns (T, H, W) bool)."""
+    maps = _undistort_maps(camera)
     return np.stack([
         cv2.remap(cv2.GaussianBlur(m.astype(np.float32), (0, 0), UNDISTORT_SMOOTHING_PX), *maps,
                   interpolation=cv2.INTER_LINEAR) >= 0.5
@@ -993,13 +1010,16 @@ def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
 
 
 def _cache_key(path: Path, kind: str, start: int, stop: int | None,
-               settings: SegmentationSettings) -> str:
+               settings: SegmentationSettings, camera: Camera | None = None) -> str:
+    """The segmentation cache's key: the source files, range and settings, and a distorted
+    camera's K and coefficients (its coverage moments are taken undistorted)."""
     files = _list_images(path) if path.is_dir() else [path]
     stamps = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]
-    payload = json.dumps({
-        "version": _CACHE_VERSION, "path": str(path.resolve()), "files": stamps, "kind": kind,
-        "start": start, "stop": stop, "settings": asdict(settings),
-    }, sort_keys=True)
+    content = {"version": _CACHE_VERSION, "path": str(path.resolve()), "files": stamps, "kind": kind,
+               "start": start, "stop": stop, "settings": asdict(settings)}
+    if _distorted(camera):
+        content["lens"] = [np.asarray(camera.K).tolist(), list(map(float, camera.dist_coeffs))]
+    payload = json.dumps(content, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:20]
 
 
@@ -1094,7 +1114,7 @@ def load_observation(
     cache_file = None
     cached = None
     if kind != "masks" and cache_dir is not None:
-        cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings)}.npz"
+        cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings, camera)}.npz"
         cached = _load_cache(cache_file)
 
     background = None
@@ -1116,7 +1136,7 @@ def load_observation(
         else:
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
-        segmented = _segment(frames, settings)
+        segmented = _segment(frames, settings, _undistort_maps(camera) if _distorted(camera) else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
         background = cv2.cvtColor(
@@ -1130,8 +1150,9 @@ def load_observation(
                                 background=background, fps=file_fps, coverage_moments=cover_moments)
     _check_size(masks.shape[1:3], camera, path)
 
-    if camera is not None and any(c != 0 for c in camera.dist_coeffs):
-        masks, cover_moments = _undistort(masks, camera), None
+    if _distorted(camera):  # the coverage's moments were taken undistorted (_segment)
+        masks = _undistort(masks, camera)
+        cover_moments = raw_moments(masks) if kind == "masks" else cover_moments
     reasons = _flag(masks, second_frac, settings)
     if all(r == "no object" for r in reasons):
         raise ValueError(

@@ -62,6 +62,7 @@ from torchfit.discover_video import (
     VIDEO_SELECTION,
     discover_video,
 )
+from torchfit.camera import Camera
 from torchfit.effects import EFFECTS
 from torchfit.search import Exposure
 from torchfit.shape import load_shape
@@ -81,8 +82,12 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
-            heldout_margin: float | None = None, robust: float | None = None) -> dict:
+            heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
+    if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
+        camera = Camera(**{k: v for k, v in truth["camera_true"].items() if k != "dist_coeffs"},
+                        dist_coeffs=tuple(truth["camera_true"].get("dist_coeffs", ())))
+        truth = {**truth, "effects": {k: v for k, v in truth.get("effects", {}).items() if k != "lens_distortion"}}
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
                                  ("coverage_clip", coverage_clip), ("coverage_band", coverage_band),
@@ -670,7 +675,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
-         robust: float | None = None) -> None:
+         robust: float | None = None, declare_lens: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -689,7 +694,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + ("_speednoise" if speed_noise else "")
                             + heldout_suffix(heldout_margin) + robust_suffix(robust)
-                            + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else ""))
+                            + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else "")
+                            + ("_lensdeclared" if declare_lens else ""))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
@@ -713,7 +719,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
-                          heldout_margin=heldout_margin, robust=robust)
+                          heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -788,6 +794,9 @@ if __name__ == "__main__":
     ap.add_argument("--robust", type=float, metavar="K",
                     help="the criterion takes Huber's loss at K noise units instead of squares "
                          "(VideoProblem(robust=K); results/concealed..._huber<K>/)")
+    ap.add_argument("--declare-lens", action="store_true",
+                    help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
+                         "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
     ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
                     help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
@@ -926,4 +935,5 @@ if __name__ == "__main__":
          coverage_clip=False if args.unclipped else None, fit_exposure=args.fit_exposure,
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
-         speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust)
+         speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
+         declare_lens=args.declare_lens)
