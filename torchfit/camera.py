@@ -65,9 +65,24 @@ class Camera:
                 )
 
     @property
+    def distorted(self) -> bool:
+        """Whether any distortion coefficient is non-zero (images are then undistorted)."""
+        return any(c != 0 for c in self.dist_coeffs)
+
+    @property
     def K(self) -> np.ndarray:
         """(3, 3) intrinsic matrix."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @staticmethod
+    def from_dict(data: dict) -> "Camera":
+        """A camera from a camera file's JSON content (``fx, fy, cx, cy, width, height``[,
+        ``dist_coeffs``]); raises KeyError or TypeError for a missing or malformed key."""
+        return Camera(
+            float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
+            int(data["width"]), int(data["height"]),
+            tuple(float(c) for c in data.get("dist_coeffs", ())),
+        )
 
     @staticmethod
     def from_file(path: str | Path) -> "Camera":
@@ -82,12 +97,7 @@ class Camera:
             raise ValueError(f"camera file {str(path)!r} does not exist")
         if path.suffix.lower() == ".json":
             try:
-                data = json.loads(path.read_text())
-                return Camera(
-                    float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
-                    int(data["width"]), int(data["height"]),
-                    tuple(float(c) for c in data.get("dist_coeffs", ())),
-                )
+                return Camera.from_dict(json.loads(path.read_text()))
             except (KeyError, TypeError, json.JSONDecodeError) as err:
                 raise ValueError(
                     f"camera file {str(path)!r} must be JSON with fx, fy, cx, cy, width, height: {err}"

@@ -994,10 +994,6 @@ def _undistort_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def _distorted(camera: Camera | None) -> bool:
-    return camera is not None and any(c != 0 for c in camera.dist_coeffs)
-
-
 def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
     """Undistort (T, H, W) bool masks with the camera's own K: each mask smoothed by a Gaussian of
     ``UNDISTORT_SMOOTHING_PX``, resampled linearly, and thresholded at 0.5 (returns (T, H, W) bool)."""
@@ -1017,7 +1013,7 @@ def _cache_key(path: Path, kind: str, start: int, stop: int | None,
     stamps = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]
     content = {"version": _CACHE_VERSION, "path": str(path.resolve()), "files": stamps, "kind": kind,
                "start": start, "stop": stop, "settings": asdict(settings)}
-    if _distorted(camera):
+    if camera is not None and camera.distorted:
         content["lens"] = [np.asarray(camera.K).tolist(), list(map(float, camera.dist_coeffs))]
     payload = json.dumps(content, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:20]
@@ -1087,6 +1083,7 @@ def load_observation(
         raise ValueError(f"stop must be an integer > start = {start}, got {stop!r}")
     if isinstance(camera, (str, Path)):
         camera = Camera.from_file(camera)
+    distorted = camera is not None and camera.distorted
 
     if path.is_dir():
         paths = _list_images(path)
@@ -1125,7 +1122,7 @@ def load_observation(
                 np.sort(_components(m)[1])[::-1]) for m in masks
         ])
         frame_fps = float(fps)
-        cover_moments = raw_moments(masks)
+        cover_moments = None  # the masks' own, once undistorted (below)
     elif cached is not None:
         masks, second_frac = cached["masks"].astype(bool), cached["second_frac"]
         background, cover_moments = cached["background"], cached["coverage_moments"]
@@ -1136,7 +1133,7 @@ def load_observation(
         else:
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
-        segmented = _segment(frames, settings, _undistort_maps(camera) if _distorted(camera) else None)
+        segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
         background = cv2.cvtColor(
@@ -1150,9 +1147,10 @@ def load_observation(
                                 background=background, fps=file_fps, coverage_moments=cover_moments)
     _check_size(masks.shape[1:3], camera, path)
 
-    if _distorted(camera):  # the coverage's moments were taken undistorted (_segment)
+    if distorted:  # a frame's coverage moments were taken undistorted (_segment)
         masks = _undistort(masks, camera)
-        cover_moments = raw_moments(masks) if kind == "masks" else cover_moments
+    if kind == "masks":
+        cover_moments = raw_moments(masks)
     reasons = _flag(masks, second_frac, settings)
     if all(r == "no object" for r in reasons):
         raise ValueError(
@@ -1221,7 +1219,7 @@ def contact_sheet(observation: Observation, frames: np.ndarray | None, path: str
         else:
             tiles = read_frames(observation.source, observation.frame_indices[picks])
             camera = observation.camera
-            if camera is not None and any(c != 0 for c in camera.dist_coeffs):
+            if camera is not None and camera.distorted:
                 tiles = np.stack([cv2.undistort(f, camera.K, np.asarray(camera.dist_coeffs))
                                   for f in tiles])
     else:

@@ -85,8 +85,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
-        camera = Camera(**{k: v for k, v in truth["camera_true"].items() if k != "dist_coeffs"},
-                        dist_coeffs=tuple(truth["camera_true"].get("dist_coeffs", ())))
+        camera = Camera.from_dict(truth["camera_true"])
         truth = {**truth, "effects": {k: v for k, v in truth.get("effects", {}).items() if k != "lens_distortion"}}
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),

@@ -35,7 +35,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 
-from concealed import RECORDINGS, limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
+from concealed import limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
+from true_masks import fresh_folder  # noqa: E402
 
 SEVEN = (0, 1, 2, 3, 4, 5, 6)
 DEFAULT_SUFFIX = "_albedo1_exposure0.5_taps0_fitted_huber2"
@@ -60,17 +61,15 @@ def tally(pairs: list[tuple[float, bool]]) -> list[tuple[str, int, int]]:
     return out + [("**below 1**", *count(0.0, 1.0)), ("**1 or above**", *count(1.0, float("inf")))]
 
 
-def runs(suffix: str, sets: tuple[int, ...], results: Path = HERE / "results",
-         recordings: Path = RECORDINGS) -> dict:
+def runs(suffix: str, sets: tuple[int, ...], results: Path = HERE / "results") -> dict:
     """``{set label: {recording: concealed.row}}`` from each set's stored discover.json files."""
     out = {}
     for k in sets:
         folder = results / f"concealed{f'_fresh{k}' if k else ''}{suffix}"
         if not folder.is_dir():
             raise SystemExit(f"no results folder {folder} (run concealed.py for that set and suffix first)")
-        made = recordings.parent / f"{recordings.name}{f'_fresh{k}' if k else ''}"
         out[f"fresh {k}" if k else "first"] = {
-            path.parent.name: row(path.parent.name, json.loads(path.read_text()), made)
+            path.parent.name: row(path.parent.name, json.loads(path.read_text()), fresh_folder(k))
             for path in sorted(folder.glob("*/discover.json"))}
     return out
 
@@ -80,8 +79,8 @@ def targets(by_set: dict) -> str:
     lines = ["| set | right | controls quiet | wrong names | held-out halved | coefficients within 25 % |",
              "|---|---|---|---|---|---|"]
     every = [r for rows in by_set.values() for r in rows.values()]
-    for label, rows in [*by_set.items(), ("**all**", {i: r for i, r in enumerate(every)})]:
-        c = score(list(rows.values()))
+    for label, rows in [*((label, list(rows.values())) for label, rows in by_set.items()), ("**all**", every)]:
+        c = score(rows)
         lines.append(f"| {label} | {c['effect_right'][0]} of {c['effect_right'][1]} | {c['controls_quiet'][0]} of "
                      f"{c['controls_quiet'][1]} | {', '.join(c['wrong_names']) or 'none'} | {c['heldout_halved'][0]} of "
                      f"{c['heldout_halved'][1]} | {c['coefficients_within_25pc'][0]} of {c['coefficients_within_25pc'][1]} |")
