@@ -351,22 +351,24 @@ def test_outcome_tells_honest_answers_from_failures(tmp_path):
     tie = _content([], strong) | {"indistinguishable": [["time_scale", "quadratic_drag"]]}
     other_tie = _content([], strong) | {"indistinguishable": [["time_scale", "lens_distortion"]]}
     withheld = _content([], strong) | {"verdict_withheld": ["quadratic_drag"]}
+    lens = _content([], {"lens_distortion": {"k1": -0.2, "k2": 0.04}})  # two numbers: no scalar limit
     cases = {"named": _content(["quadratic_drag"], strong), "tie": tie, "below": _content([], weak),
              "above": _content([], strong), "other_tie": other_tie, "withheld": withheld,
-             "wrong": _content(["quadratic_drag", "time_scale"], strong)}
+             "wrong": _content(["quadratic_drag", "time_scale"], strong), "lens": lens}
     ended = {name: conc.outcome(conc.row(f"drag_{name}", content)) for name, content in cases.items()}
     assert ended == {"named": conc.OUTCOMES[0], "tie": conc.OUTCOMES[1], "below": conc.OUTCOMES[2],
                      "above": conc.OUTCOMES[3], "other_tie": conc.OUTCOMES[3], "withheld": conc.OUTCOMES[4],
-                     "wrong": conc.OUTCOMES[5]}
+                     "wrong": conc.OUTCOMES[5], "lens": conc.OUTCOMES[3]}
+    assert "above" not in conc.OUTCOMES[3]  # the lens's miss has no limit to be above
     assert conc.outcome(conc.row("control_x", _content(["time_scale"], {}))) == conc.OUTCOMES[5]
     rows = [conc.row(f"drag_{name}", content) for name, content in cases.items()]
     rows.append(conc.row("control_x", _content([], {})))  # controls are not effect cases
     (tmp_path / "concealed").mkdir()
     (tmp_path / "concealed" / "summary.json").write_text(json.dumps(rows))
     table = conc.outcomes(tmp_path)
-    assert "| first | 1 | 1 (drag_tie) | 1 (drag_below) | 2 (drag_above, drag_other_tie) | 1 (drag_withheld) " \
-           "| 1 (drag_wrong) |" in table
-    assert table.splitlines()[-1] == "| **all** | **1** | **1** | **1** | **2** | **1** | **1** |"
+    assert "| first | 1 | 1 (drag_tie) | 1 (drag_below) | 3 (drag_above, drag_other_tie, drag_lens) " \
+           "| 1 (drag_withheld) | 1 (drag_wrong) |" in table
+    assert table.splitlines()[-1] == "| **all** | **1** | **1** | **1** | **3** | **1** | **1** |"
     grid = conc.verdict_grid(tmp_path).splitlines()
     assert grid[0] == "| recording | hidden | first |"
     assert "| drag_named | quadratic_drag | right |" in grid and "| drag_below | quadratic_drag | below limit |" in grid
@@ -600,6 +602,32 @@ def test_blur_estimates_recover_a_known_exposure():
     assert diag._along_motion_fraction(raw(blurred), raw(sharp), velocity, used, w) == pytest.approx(fraction, rel=1e-6)
     assert diag._along_motion_fraction(raw(sharp), raw(sharp), velocity, used, w) == pytest.approx(0.0, abs=1e-6)
 
+
+
+def test_radial_fit_recovers_a_lens_left_over():
+    """``diagnose.py lens-residual``'s fit: centroids moved by a radial term ``d k1`` (the
+    distortion ``x_n (1 + d k1 r_n^2)`` through K), an offset and 0.1 px of noise give ``d k1`` back
+    within three of its standard errors, and that error is about what the noise makes; without the
+    radial term the fit reads zero."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    K = np.array([[659.4, 0.0, 319.5], [0.0, 659.4, 239.5], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(5)
+    true = rng.uniform((40.0, 40.0), (600.0, 440.0), (200, 2))
+    normal = (true - K[:2, 2]) / K[0, 0]
+
+    def seen(k1):
+        moved = normal * (1 + k1 * (normal**2).sum(1, keepdims=True))
+        return moved * K[0, 0] + K[:2, 2] + (0.05, -0.08) + rng.normal(0.0, 0.1, true.shape)
+
+    fit = diag.radial_fit(seen(0.004), true, K)
+    assert abs(fit["residual_k1"] - 0.004) < 3 * fit["residual_k1_std"]
+    assert 1e-4 < fit["residual_k1_std"] < 1e-3
+    assert fit["offset_px"] == pytest.approx([0.05, -0.08], abs=0.05)
+    assert fit["centroid_rms_px"] == pytest.approx(0.1, rel=0.15)
+    assert fit["signature_px"] == pytest.approx(float(np.abs(K[0, 0] * normal * (normal**2).sum(1, keepdims=True)).max()))
+    null = diag.radial_fit(seen(0.0), true, K)
+    assert abs(null["residual_k1"]) < 3 * null["residual_k1_std"]
 
 def test_mixed_moments_take_each_part_from_its_source():
     """``diagnose.py exact-coverage``'s mix: each of area, centroid and shape (second moments per

@@ -338,7 +338,7 @@ def below_limit(r: dict) -> bool:
 
 # How a recording's run ended, from the best to the worst (:func:`outcome`)
 OUTCOMES = ("named right", "indistinguishable, the truth among them", "nothing named, below its own limit",
-            "nothing named, above its own limit", "withheld (poor fit)", "a wrong name")
+            "nothing named, not excused by its own limit", "withheld (poor fit)", "a wrong name")
 
 
 def outcome(r: dict) -> str:
@@ -346,7 +346,9 @@ def outcome(r: dict) -> str:
     quiet, "a wrong name" otherwise). Only "named right" meets the issue's target; the next two
     are honest answers that name nothing: a tie reported between look-alikes one of which is
     hidden, and a miss that the run itself says the clip could not show (its reported detection
-    limit above the truth, :func:`below_limit`). The last three are failures."""
+    limit above the truth, :func:`below_limit`). The last three are failures; the first of them
+    takes a truth above its limit and an effect of several numbers (a lens, an offset), which
+    gets no scalar limit (:func:`limit_ratio`)."""
     if r["right"]:
         return OUTCOMES[0]
     if set(r["verdict"]) - set(r["truth"]):

@@ -31,6 +31,8 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py codec FRESH NAME...        # remade with other H.264 encodings (CODECS), ~2 min each
     python experiments/discover/diagnose.py search SET NAME... SETTING=V...  # the search on default and on changed masks, ~2 min each
     python experiments/discover/diagnose.py exposure SET NAME... [SETTING=V...] [fractions=F1,F2,...]  # the baseline at other exposures than the recording's (default 0, 0.25, 0.5, 0.75, 1), ~2 min each
+    python experiments/discover/diagnose.py regions SET NAME... [SETTING=V...]  # the coverage's centroid error by region (interior, ramp, outside), ~30 s each
+    python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -1186,6 +1188,140 @@ def _setting_value(text: str):
         return text
 
 
+REGIONS = (("interior", 0.98, 1.01), ("ramp", 0.02, 0.98), ("outside", -0.01, 0.02))  # regions: exact coverage bounds
+
+
+def regions(folder: Path, settings=None, samples: int = 4) -> dict:
+    """Where the soft coverage's centroid error lives. Per frame where the mask is whole, the
+    segmentation's coverage (clipped to [0, 1], within its band, as its moments take it) minus the
+    exact coverage, the exposure's average of the true silhouette at the recording's sub-frames
+    (:func:`_subframe_poses`) rendered hard at ``samples`` x ``samples`` a pixel. Split by the exact
+    coverage into :data:`REGIONS` (interior >= 0.98, the ramp between, outside <= 0.02), each
+    region's share of the centroid error ``sum e (x - c) / A`` (px) and of the area ``sum e / A``,
+    with :func:`_stats` over the frames, and the region's mean and mean absolute per-pixel error.
+    ``centroid_if_independent``: the RMS per axis the same per-pixel errors would give with
+    independent random signs, ``sqrt(sum e^2 |x - c|^2 / 2) / A``: an error far above it is
+    correlated from pixel to pixel (or systematic), not each pixel's own noise.
+    ``total``: the three summed. Pinhole recordings only."""
+    import torchfit.video as video
+    from torchfit.render import RenderMesh, render_silhouettes
+
+    settings = settings or SegmentationSettings()
+    truth, shape, camera = recording_parts(folder)
+    if any(abs(c) > 0 for c in camera.dist_coeffs):
+        raise SystemExit("a lens recording: the exact coverage here takes no distortion")
+    masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
+    sub_position, sub_rotation = _subframe_poses(truth)
+    subframes = sub_position.shape[1]
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
+    shares = {name: [] for name, _, _ in REGIONS}  # per frame (cx, cy, area, mean error, mean |error|)
+    for t in np.flatnonzero(_whole(masks)):
+        rows, cols = np.nonzero(masks[t])
+        pad = settings.coverage_near_px + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
+        y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
+        y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
+        h, w = y1 - y0, x1 - x0
+        window = torch.tensor([[x0 - 0.5 + 0.5 / samples, y0 - 0.5 + 0.5 / samples, 1.0 / samples]] * subframes,
+                              dtype=torch.float64)
+        with torch.no_grad():
+            hard = render_silhouettes(mesh, camera, torch.as_tensor(sub_rotation[t])[None],
+                                      torch.as_tensor(sub_position[t])[None], window[None],
+                                      size=(h * samples, w * samples), sigma=None)[0]
+        exact = hard.mean(0).reshape(h, samples, w, samples).mean((1, 3)).numpy()
+        band = video.motion_band(masks[t], settings.coverage_near_px, velocity[t])[y0:y1, x0:x1]
+        cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
+        error, area = cover - exact, exact.sum()
+        v, u = np.mgrid[0:h, 0:w]
+        cu, cv = (exact * u).sum() / area, (exact * v).sum() / area
+        for name, low, high in REGIONS:
+            inside = (exact > low) & (exact <= high) if name != "interior" else exact >= low
+            e = error * inside
+            shares[name].append(((e * (u - cu)).sum() / area, (e * (v - cv)).sum() / area, e.sum() / area,
+                                 float(error[inside].mean()) if inside.any() else 0.0,
+                                 float(np.abs(error[inside]).mean()) if inside.any() else 0.0,
+                                 np.sqrt((e**2 * ((u - cu) ** 2 + (v - cv) ** 2)).sum() / 2) / area))
+    out = {"frames": len(shares["ramp"])}
+    for name, rows in shares.items():
+        rows = np.array(rows)
+        out[name] = {"centroid_x": _stats(rows[:, 0]), "centroid_y": _stats(rows[:, 1]), "area": _stats(rows[:, 2]),
+                     "pixel_error_mean": float(rows[:, 3].mean()), "pixel_error_abs": float(rows[:, 4].mean()),
+                     "centroid_if_independent": float(np.sqrt(np.mean(rows[:, 5] ** 2)))}
+    total = np.sum([np.array(rows)[:, :3] for rows in shares.values()], 0)
+    out["total"] = {"centroid_x": _stats(total[:, 0]), "centroid_y": _stats(total[:, 1]), "area": _stats(total[:, 2])}
+    return out
+
+
+def lens_residual(folder: Path, settings=None) -> dict:
+    """Is a lens left after undistortion? The soft coverage's centroids (the segmentation's own
+    moments, each frame's coverage undistorted through the calibrated camera, truth.json's
+    ``camera_true``, where it has distortion) against the exact exposure average's
+    (:func:`_exact_moments`, the pinhole camera), per frame where the mask is whole, fitted by
+    :func:`radial_fit`. Its standard error takes the frames as independent, which the
+    segmentation's slow error is not, so it is a lower bound."""
+    import torchfit.video as video
+    from torchfit.camera import Camera
+
+    truth, shape, pinhole = recording_parts(folder)
+    lens = Camera.from_dict(truth["camera_true"]) if "camera_true" in truth else pinhole
+    frames, _ = video._read_video(folder / "video.mp4", 0, None)
+    seg = video._segment(frames, settings or SegmentationSettings(),
+                         undistort=video._undistort_maps(lens) if lens.distorted else None)
+    raw = np.asarray(seg["coverage_moments"])
+    _, exact = _exact_moments(truth, shape, pinhole)
+    exact = exact.numpy()
+    whole = _whole(seg["masks"])
+    seen, true = raw[whole, 1:3] / raw[whole, :1], exact[whole, 1:3] / exact[whole, :1]
+    out = {"frames": int(whole.sum()), "k1": float(lens.dist_coeffs[0]) if lens.distorted else 0.0,
+           **radial_fit(seen, true, np.asarray(pinhole.K))}
+    if lens.distorted:
+        out["maps_disagreement_px"] = _maps_disagreement(truth, lens)
+    return out
+
+
+def _maps_disagreement(truth: dict, lens) -> float:
+    """The largest distance (px) between an undistorted pixel and where the generator's lens
+    (make_recordings.distortion_maps: distorted pixel -> its wide pinhole render) sends the point
+    that OpenCV's undistortion maps (torchfit's, :func:`torchfit.video._undistort_maps`) take it
+    to, over the pixels whose distorted place lies inside the frame: 0 when the two lenses agree."""
+    import cv2
+    import make_concealed  # noqa: F401  (puts make_recordings on the path)
+    import make_recordings as mr
+
+    import torchfit.video as video
+
+    spec = mr.RecordingSpec(**truth["spec"])
+    to_wide = mr.distortion_maps(spec)
+    width, height, _ = mr.render_geometry(spec)
+    to_distorted = video._undistort_maps(lens)
+    wide = [cv2.remap(m, *to_distorted, cv2.INTER_LINEAR) for m in to_wide]
+    v, u = np.mgrid[0:spec.height, 0:spec.width].astype(np.float64)
+    K = np.asarray(lens.K)
+    off = np.hypot(wide[0] - (u + (width - 1) / 2 - K[0, 2]), wide[1] - (v + (height - 1) / 2 - K[1, 2]))
+    inside = ((to_distorted[0] > 1) & (to_distorted[0] < spec.width - 2)
+              & (to_distorted[1] > 1) & (to_distorted[1] < spec.height - 2))
+    return float(off[inside].max())
+
+
+def radial_fit(seen: np.ndarray, true: np.ndarray, K: np.ndarray) -> dict:
+    """(N, 2) centroids ``seen`` against (N, 2) ``true`` (px) fitted by an offset per axis plus
+    ``d k1`` times ``f x_n r_n^2`` (the shift a change ``d k1`` of the radial term makes at each true
+    centroid, normalised coordinates by the (3, 3) ``K``): ``residual_k1`` and its standard error
+    (points taken as independent), ``signature_px`` (the largest ``|f x_n r_n^2|``), ``offset_px``
+    and the RMS left (``centroid_rms_px``)."""
+    normal = (true - K[:2, 2]) / K[0, 0]
+    signature = K[0, 0] * normal * (normal**2).sum(1, keepdims=True)  # (N, 2) px per unit k1
+    design = np.zeros((2 * len(seen), 3))
+    design[0::2, 0], design[1::2, 1], design[:, 2] = 1.0, 1.0, signature.ravel()
+    error = (seen - true).ravel()
+    beta, *_ = np.linalg.lstsq(design, error, rcond=None)
+    rest = error - design @ beta
+    covariance = rest @ rest / (len(error) - 3) * np.linalg.inv(design.T @ design)
+    return {"residual_k1": float(beta[2]), "residual_k1_std": float(np.sqrt(covariance[2, 2])),
+            "signature_px": float(np.abs(signature).max()), "offset_px": beta[:2].tolist(),
+            "centroid_rms_px": float(np.sqrt(np.mean(rest**2)))}
+
+
 def _setting_args(args: list[str]) -> dict:
     """The ``SETTING=V`` arguments among ``args`` as segmentation settings (:func:`_setting_value`)."""
     return {k: _setting_value(v) for k, v in (a.split("=") for a in args if "=" in a)}
@@ -1250,7 +1386,8 @@ def main(argv: list[str]) -> None:
                 "contrast": contrast, "clip": clip, "search": search, "exposure": exposure,
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
                 "spread-stall": spread_stall, "baseline-starts": baseline_starts,
-                "shape-frames": shape_frames, "error-speed": error_speed}
+                "shape-frames": shape_frames, "error-speed": error_speed, "regions": regions,
+                "lens-residual": lens_residual}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1263,12 +1400,12 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions + parts + held]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
-                          "shape-frames", "error-speed")
+                          "shape-frames", "error-speed", "regions", "lens-residual")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
                                                       "baseline-starts", "heldout-blur", "shape-frames",
-                                                      "error-speed") else {})
+                                                      "error-speed", "regions", "lens-residual") else {})
     if command == "heldout-blur" and changes:  # the blurred path's albedo pass, unless set
         changes = {"albedo_passes": 1} | changes
     if command == "search" and not changes:
