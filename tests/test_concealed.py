@@ -604,6 +604,27 @@ def test_blur_estimates_recover_a_known_exposure():
 
 
 
+
+def test_subframe_poses_sit_where_the_recordings_put_them():
+    """``diagnose._subframe_poses`` places a blurred recording's sub-frames evenly over its
+    exposure, centred on the frame (make_recordings.sample_times), and a sharp recording's one
+    sub-frame at the frame's own time, not half an exposure early."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    times = np.arange(8) / 30.0
+    position = np.stack([1.0 + 2.0 * times, -4.9 * times**2, 3.0 + 0.0 * times], -1)  # a fall: the spline is exact
+    truth = {"fps": 30.0, "per_frame": {"time": times.tolist(), "position": position.tolist(),
+                                         "R": [np.eye(3).tolist()] * len(times)},
+             "render": {"blur_subframes": 1, "exposure_frac": 0.5}}
+    sharp, _ = diag._subframe_poses(truth)
+    assert sharp.shape == (8, 1, 3) and np.allclose(sharp[:, 0], position)
+    truth["render"]["blur_subframes"] = 5
+    blurred, rotation = diag._subframe_poses(truth)
+    offsets = (np.arange(5) / 4 - 0.5) * 0.5 / 30.0
+    expected = times[:, None] + offsets
+    assert np.allclose(blurred[..., 0], 1.0 + 2.0 * expected) and np.allclose(blurred[..., 1], -4.9 * expected**2)
+    assert rotation.shape == (8, 5, 3, 3)
+
 def test_radial_fit_recovers_a_lens_left_over():
     """``diagnose.py lens-residual``'s fit: centroids moved by a radial term ``d k1`` (the
     distortion ``x_n (1 + d k1 r_n^2)`` through K), an offset and 0.1 px of noise give ``d k1`` back

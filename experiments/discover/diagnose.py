@@ -508,7 +508,8 @@ def _subframe_poses(truth: dict) -> tuple[np.ndarray, np.ndarray]:
     per_frame, fps = truth["per_frame"], float(truth["fps"])
     subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
     times = np.array(per_frame["time"])
-    sub_times = times[:, None] + (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
+    offsets = np.arange(subframes) / (subframes - 1) - 0.5 if subframes > 1 else np.zeros(1)  # one: the frame's time
+    sub_times = times[:, None] + offsets * exposure / fps
     position = CubicSpline(times, np.array(per_frame["position"]))(sub_times)
     rotation = RotationSpline(times, Rotation.from_matrix(np.array(per_frame["R"])))(
         np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix().reshape(*sub_times.shape, 3, 3)

@@ -52,7 +52,7 @@ def measure(folder: Path) -> dict:
     segmented = observation.masks.astype(bool)
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
     # sub-frame times as the recordings place them: centred on the frame, over exposure / fps
-    offsets = (np.arange(subframes) / max(subframes - 1, 1) - 0.5) * exposure / fps
+    offsets = (np.arange(subframes) / (subframes - 1) - 0.5 if subframes > 1 else np.zeros(1)) * exposure / fps
     sub_times = np.clip(times[:, None] + offsets[None], times[0], times[-1])  # (T, K)
     sub_position = CubicSpline(times, position)(sub_times)  # (T, K, 3)
     sub_rotation = RotationSpline(times, Rotation.from_matrix(rotation))(sub_times.ravel()).as_matrix()
