@@ -33,12 +33,13 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py exposure SET NAME... [SETTING=V...] [fractions=F1,F2,...]  # the baseline at other exposures than the recording's (default 0, 0.25, 0.5, 0.75, 1), ~2 min each
     python experiments/discover/diagnose.py regions SET NAME... [SETTING=V...]  # the coverage's centroid error by region (interior, ramp, outside), ~30 s each
     python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
+    python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
-(``chroma``: results/diagnose_chroma.json; ``sets``: results/diagnose_sets.json; ``lens-masks``: results/diagnose_lens_masks.json; ``sources`` and ``stretch-sources``:
-results/diagnose_[stretch_]sources.json; ``ramp``: results/diagnose_ramp.json; ``codec``:
-results/diagnose_codec.json. FRESH is the set's number, 0 for the first; these four need MuJoCo,
+(``chroma``: results/diagnose_chroma.json; ``sets``: results/diagnose_sets.json; ``lens-masks``: results/diagnose_lens_masks.json; ``sources``, ``stretch-sources`` and ``regions-sources``:
+results/diagnose_[stretch_|regions_]sources.json; ``ramp``: results/diagnose_ramp.json; ``codec``:
+results/diagnose_codec.json. FRESH is the set's number, 0 for the first; these five need MuJoCo,
 the ``recordings`` extra).
 """
 
@@ -466,6 +467,22 @@ def sources(fresh: int, names: list[str]) -> dict:
     noise) and without all three (:func:`_remade`), and segmented (:func:`_segmentation_row`)."""
     return _remade(fresh, names, SOURCES, _segmentation_row)
 
+
+
+def _regions_row(spec, folder: Path) -> dict:
+    """A remake's :func:`regions` with the albedo pass (the default's segmentation), flat: each
+    region's centroid RMS per axis, and the ramp's with independent signs."""
+    result = regions(folder, SegmentationSettings(albedo_passes=1))
+    row = {f"{part}_{axis}": result[part][f"centroid_{axis}"]["rms"]
+           for part in ("interior", "ramp", "outside", "total") for axis in ("x", "y")}
+    return row | {"ramp_if_independent": result["ramp"]["centroid_if_independent"],
+                  "ramp_pixel_error_abs": result["ramp"]["pixel_error_abs"]}
+
+
+def regions_sources(fresh: int, names: list[str]) -> dict:
+    """:func:`regions` on each concealed recording remade without each source of error
+    (:data:`SOURCES`, as :func:`sources`)."""
+    return _remade(fresh, names, SOURCES, _regions_row)
 
 # The H.264 encoding's two losses apart, and its quality: libx264 at crf 0 on yuv420p is lossless but
 # for the colour's half resolution (4:2:0); yuv444p at crf 14 keeps full-resolution colour and
@@ -1336,7 +1353,7 @@ def _setting_label(changes: dict) -> str:
 
 def main(argv: list[str]) -> None:
     remakes = {"sources": (sources, SOURCES, ERROR_KEYS), "codec": (codec, CODECS, ERROR_KEYS + ("bits_per_pixel",)),
-               "stretch-sources": (stretch_sources, None, None)}
+               "stretch-sources": (stretch_sources, None, None), "regions-sources": (regions_sources, None, None)}
     if argv[:1] and argv[0] in remakes and len(argv) > 2:
         command, columns, keys = remakes[argv[0]]
         file = HERE / "results" / f"diagnose_{argv[0].replace('-', '_')}.json"
