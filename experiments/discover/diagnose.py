@@ -7,8 +7,8 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the earlier ways of computing it, ~3 min
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
-    python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT  # the held-out prediction per channel, ~2 min
-    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F] [SETTING=V...]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
+    python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT [robust=K]  # the held-out prediction per channel, ~2 min
+    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F] [robust=K] [SETTING=V...]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
     python experiments/discover/diagnose.py heldout-swap SET NAME EFFECT  # true masks on the held-out or train frames, ~6 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
@@ -67,10 +67,10 @@ from torchfit.video import SegmentationSettings, mask_velocity
 HERE = Path(__file__).resolve().parent
 
 
-def _video(folder: Path) -> dv.VideoProblem:
+def _video(folder: Path, **settings) -> dv.VideoProblem:
     _, shape, camera = recording_parts(folder)
     _, problem, _ = load_problem(folder, shape, camera, False)
-    return dv.VideoProblem(problem)
+    return dv.VideoProblem(problem, **settings)
 
 
 def segmentation(folder: Path) -> dict:
@@ -256,7 +256,7 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
 
 
 def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_exposure: float | None = None,
-                     settings: SegmentationSettings | None = None) -> dict:
+                     settings: SegmentationSettings | None = None, robust: float | None = None) -> dict:
     """Which channel turns a held-out test: discover's baseline and its refit with ``effect``,
     each with its nuisances (the edge bias's two terms, and with ``blurred`` the exposure) and
     effect value fitted on all frames and on the train frames, and its held-out prediction per
@@ -266,7 +266,8 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
     --exposure-taps 0 --fit-exposure``; with ``held_exposure`` (``heldout-blur ... exposure=F``) the
     exposure held at F instead, in every fit and held-out fit; ``settings`` (``SETTING=V``, e.g.
     ``coverage_band=motion coverage_clip=false``) the blurred path's segmentation, its albedo pass
-    kept unless one of them sets ``albedo_passes``."""
+    kept unless one of them sets ``albedo_passes``; ``robust`` (``robust=K``): Huber's loss at K noise
+    floors in every fit, as the default (``data.exposure=auto``) has it at 2."""
     from torchfit.residuals import CHANNELS
 
     searched = None
@@ -274,9 +275,9 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
         settings = settings or SegmentationSettings(albedo_passes=1)
         _, _, problem, coverage, searched = _searched_coverage(folder, settings)
         video = dv.VideoProblem(problem, exposure=Exposure(0.5 if held_exposure is None else held_exposure, 0),
-                                fit_exposure=held_exposure is None, coverage=coverage)
+                                fit_exposure=held_exposure is None, coverage=coverage, robust=robust)
     else:
-        video = _video(folder)
+        video = _video(folder, robust=robust)
     base = video.fit((), None, searched)
     out = {}
     for label, fit in (("baseline", base), (effect, video.fit((effect,), base))):
@@ -1415,7 +1416,9 @@ def main(argv: list[str]) -> None:
     parts = [a for a in argv[2:] if a.startswith("parts=")] if command == "exact-coverage" else []
     # heldout-blur: exposure=F, the exposure held at F instead of fitted
     held = [a for a in argv[2:] if a.startswith("exposure=")] if command == "heldout-blur" else []
-    argv = [a for a in argv if a not in fractions + parts + held]
+    # heldout-channels, heldout-blur: robust=K, Huber's loss at K noise floors
+    robust = [a for a in argv[2:] if a.startswith("robust=")] if command in ("heldout-channels", "heldout-blur") else []
+    argv = [a for a in argv if a not in fractions + parts + held + robust]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
                           "shape-frames", "error-speed", "regions", "lens-residual")
@@ -1441,6 +1444,8 @@ def main(argv: list[str]) -> None:
         label += "_exact_" + "_".join(chosen)
     if held:
         label += "_" + held[-1].replace("=", "")
+    if robust:
+        label += "_" + robust[-1].replace("=", "")
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
@@ -1451,6 +1456,8 @@ def main(argv: list[str]) -> None:
             extra["parts"] = chosen
         if held:
             extra["held_exposure"] = float(held[-1].split("=", 1)[1])
+        if robust:
+            extra["robust"] = float(robust[-1].split("=", 1)[1])
         result = commands[command](folder / name, *([] if several else [a for a in argv[3:] if "=" not in a]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
