@@ -395,3 +395,36 @@ def test_a_held_out_margin_judges_the_prediction_by_its_deviance():
     assert "deviance rises by 8.0" in line and "rests on frames 0-14 (ΔBIC -0.4 without them)" in line
     with pytest.raises(ValueError, match="heldout_margin"):
         SelectionSettings(heldout_margin=-1.0)
+
+
+def test_a_held_out_veto_says_what_the_fit_before_the_held_out_part_reads():
+    """When the held-out RMS test turns a candidate away, the report gives the candidate's value
+    as the fit to the data before the held-out part has it, beside the value on all the data (a
+    drag right on all frames that reads twice as large on the first three quarters is a poor
+    train fit, not a wrong effect); a fit that does not give it adds nothing."""
+    from torchfit.discover import ModelFit, not_named_lines
+
+    class Overshoots:
+        noise_var = 1.0
+        candidates = ("quadratic_drag",)
+
+        def __init__(self, train):
+            self.train = train
+
+        def fit(self, effects, warm):
+            rss, held = (400.0, 7.0) if not effects else (250.0, 9.0)
+            params = {"quadratic_drag": {"drag_coefficient": {"value": 0.762, "std": 0.05, "unit": "1"}}} if effects else {}
+            train = {"quadratic_drag": {"drag_coefficient": 1.636}} if effects and self.train else None
+            return ModelFit(tuple(effects), rss, 226, 15 + len(effects), params, (rss / 226) ** 0.5, held,
+                            heldout_params=train)
+
+    vetoed = select_effects(Overshoots(True), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5))
+    assert vetoed.verdict == [] and vetoed.steps[0].scores["quadratic_drag"]["fails"] == ["heldout"]
+    assert vetoed.steps[0].scores["quadratic_drag"]["heldout_params"] == {"drag_coefficient": 1.636}
+    line = not_named_lines(vetoed, lambda s: "7.00 -> 9.00", lambda s: "")[0]
+    assert line.endswith("(7.00 -> 9.00, -29 %); fitted before the held-out part alone its drag_coefficient "
+                         "reads 1.636 (0.762 on all the data).")
+    plain = not_named_lines(select_effects(Overshoots(False), SelectionSettings(min_heldout_gain=-0.05,
+                                                                                heldout_noise=1.5)),
+                            lambda s: "7.00 -> 9.00", lambda s: "")[0]
+    assert plain.endswith("(7.00 -> 9.00, -29 %).")

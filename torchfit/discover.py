@@ -139,6 +139,9 @@ class ModelFit:
             up to a constant.
         heldout_logdet: optional ``ln det S``, the part of ``heldout_deviance`` that is the
             prediction's spread (the rest is its error against that spread).
+        heldout_params: optional ``{effect: {parameter: value}}`` of the fit to the data before
+            the held-out part alone, the fit whose prediction ``heldout_rms`` scores (physical
+            units, as ``params``' values).
         payload: the problem's own (warm start, residuals).
         parts: optional (U,) chi-squared per unit of the data (a video's frames, in order), the
             part of ``rss / noise_var`` each unit contributes: where a candidate's evidence lies.
@@ -159,6 +162,7 @@ class ModelFit:
     wald: dict | None = None
     heldout_deviance: float | None = None
     heldout_logdet: float | None = None
+    heldout_params: dict | None = None
 
 
 class SelectionProblem(Protocol):
@@ -356,7 +360,7 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_gain": gain, "heldout_deviance_before": base.heldout_deviance,
                 "heldout_deviance_after": fit.heldout_deviance, "heldout_deviance_rise": deviance,
                 "heldout_logdet_before": base.heldout_logdet, "heldout_logdet_after": fit.heldout_logdet,
-                "params": fit.params,
+                "heldout_params": (fit.heldout_params or {}).get(name), "params": fit.params,
                 "unphysical": outside, "wald_chi2": wald, "wald_delta_bic": wald_bic,
                 **spread,
                 "fails": fails, "passes": not fails,
@@ -716,6 +720,17 @@ def limits_line(selection: Selection, data: str, reach: dict | None = None) -> l
     return lines
 
 
+def _train_values(name: str, score: dict) -> str:
+    """``", fitted before the held-out part alone its drag_coefficient reads 1.64 (0.762 on all
+    the data)"``: a candidate's scalar parameters as the fit that predicts the held-out part has
+    them, beside the fit to all the data, so that a reader sees whether the effect or that fit
+    went wrong; empty when the score has none."""
+    train, params = score.get("heldout_params") or {}, score.get("params", {}).get(name, {})
+    pairs = [f"{p} reads {train[p]:.4g} ({params[p]['value']:.4g} on all the data)" for p in train
+             if isinstance(train[p], (int, float)) and isinstance(params.get(p, {}).get("value"), (int, float))]
+    return f"; fitted before the held-out part alone its {', '.join(pairs)}" if pairs else ""
+
+
 def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread: Callable[[dict], str]) -> list[str]:
     """Per round: every candidate that lowers the BIC by more than the threshold and is not
     named, with the tests it failed in words, then the round's three strongest candidates.
@@ -739,7 +754,7 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
                                f"{score['heldout_deviance_after']:.1f}{logdet})")
             elif "heldout" in fails:
                 reasons.append(f"it does not predict the held-out data well enough ({heldout(score)}, "
-                               f"{100 * score['heldout_gain']:+.0f} %)")
+                               f"{100 * score['heldout_gain']:+.0f} %){_train_values(name, score)}")
             if "wald" in fails:
                 reasons.append(f"its fitted value is within its own uncertainty of none (Wald chi2 "
                                f"{score['wald_chi2']:.1f} against a chi2 drop of {score['delta_chi2']:.1f}): the refit "

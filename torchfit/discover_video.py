@@ -1038,7 +1038,9 @@ class VideoProblem:
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
                         parts=per_frame, wald=std[2],
                         heldout_deviance=None if held_terms is None else sum(held_terms),
-                        heldout_logdet=None if held_terms is None else held_terms[1])
+                        heldout_logdet=None if held_terms is None else held_terms[1],
+                        heldout_params={name: {p: torch.as_tensor(v).tolist() for p, v in values.items()}
+                                        for name, values in held_model.values.items()})
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
