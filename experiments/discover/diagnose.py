@@ -469,7 +469,6 @@ def sources(fresh: int, names: list[str]) -> dict:
     return _remade(fresh, names, SOURCES, _segmentation_row)
 
 
-
 def _regions_row(spec, folder: Path) -> dict:
     """A remake's :func:`regions` with the albedo pass (the default's segmentation), flat: each
     region's centroid RMS per axis, and the ramp's with independent signs."""
@@ -484,6 +483,7 @@ def regions_sources(fresh: int, names: list[str]) -> dict:
     """:func:`regions` on each concealed recording remade without each source of error
     (:data:`SOURCES`, as :func:`sources`)."""
     return _remade(fresh, names, SOURCES, _regions_row)
+
 
 # The H.264 encoding's two losses apart, and its quality: libx264 at crf 0 on yuv420p is lossless but
 # for the colour's half resolution (4:2:0); yuv444p at crf 14 keeps full-resolution colour and
@@ -546,7 +546,7 @@ def _exact_moments(truth: dict, shape, camera) -> tuple[tuple, torch.Tensor]:
     recording's blur sub-frames (:func:`_subframe_poses`). Pinhole only."""
     from torchfit.render import RenderMesh, silhouette_moments
 
-    if any(abs(c) > 0 for c in camera.dist_coeffs):
+    if camera.distorted:
         raise SystemExit("a lens recording: the exact moments here take no distortion")
     per_frame = truth["per_frame"]
     sub_position, sub_rotation = _subframe_poses(truth)
@@ -633,6 +633,21 @@ def stretch_sources(fresh: int, names: list[str]) -> dict:
     return _remade(fresh, names, {source: SOURCES[source] for source in ("as recorded", "no motion blur")},
                    lambda spec, folder: _stretch_row(_segmented_and_true(folder)[0], folder))
 
+def _exact_coverage(mesh, camera, sub_rotation: np.ndarray, sub_position: np.ndarray,
+                    x0: int, y0: int, h: int, w: int, samples: int = 4) -> np.ndarray:
+    """(h, w) exact coverage of one frame's crop at ``(x0, y0)``: the true silhouette at each of its
+    (K, 3, 3) ``sub_rotation`` and (K, 3) ``sub_position`` (:func:`_subframe_poses`) rendered hard at
+    ``samples`` x ``samples`` a pixel, averaged over the sub-frames and each pixel's samples."""
+    from torchfit.render import render_silhouettes
+
+    window = torch.tensor([[x0 - 0.5 + 0.5 / samples, y0 - 0.5 + 0.5 / samples, 1.0 / samples]] * len(sub_position),
+                          dtype=torch.float64)
+    with torch.no_grad():
+        hard = render_silhouettes(mesh, camera, torch.as_tensor(sub_rotation)[None], torch.as_tensor(sub_position)[None],
+                                  window[None], size=(h * samples, w * samples), sigma=None)[0]
+    return hard.mean(0).reshape(h, samples, w, samples).mean((1, 3)).numpy()
+
+
 def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | None = None) -> dict:
     """Why a blurred ball comes out longer along its motion: the segmentation's per-pixel coverage
     (before smoothing and threshold) against the true coverage, the exposure's average of the
@@ -647,7 +662,7 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
     import make_concealed as mc
     import make_recordings as mr
 
-    from torchfit.render import RenderMesh, render_silhouettes
+    from torchfit.render import RenderMesh
 
     mr.offscreen_gl()
     spec = {s.name: s for s, _ in mc.concealed_specs(fresh)}[name].replace(**SOURCES[source])
@@ -658,20 +673,14 @@ def ramp(fresh: int, name: str, source: str = "as recorded", settings: dict | No
         masks, estimated, true = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage,
                                                   SegmentationSettings(**(settings or {})))
     sub_position, sub_rotation = _subframe_poses(truth)
-    subframes = sub_position.shape[1]
-    mesh, samples = RenderMesh.from_shape(shape, torch.float64), 4
+    mesh = RenderMesh.from_shape(shape, torch.float64)
     frames = [t for t in range(len(sub_position)) if true[t].any()]
     crops = []
     for t in frames:
         rows, cols = np.nonzero(true[t])
         y0, x0 = rows.min() - 10, cols.min() - 10
         h, w = rows.max() + 11 - y0, cols.max() + 11 - x0
-        window = torch.tensor([[x0 - 0.375, y0 - 0.375, 1.0 / samples]] * subframes, dtype=torch.float64)
-        with torch.no_grad():
-            hard = render_silhouettes(mesh, camera, torch.as_tensor(sub_rotation[t])[None],
-                                      torch.as_tensor(sub_position[t])[None], window[None],
-                                      size=(h * samples, w * samples), sigma=None)[0]
-        cover = hard.mean(0).reshape(h, samples, w, samples).mean((1, 3)).numpy()
+        cover = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, h, w)
         v, u = np.mgrid[0:h, 0:w]
         centre = np.array([(cover * u).sum(), (cover * v).sum()]) / cover.sum()
         crops.append((cover, np.asarray(estimated[t])[y0:y0 + h, x0:x0 + w], masks[t][y0:y0 + h, x0:x0 + w],
@@ -1207,54 +1216,49 @@ def _setting_value(text: str):
         return text
 
 
-REGIONS = (("interior", 0.98, 1.01), ("ramp", 0.02, 0.98), ("outside", -0.01, 0.02))  # regions: exact coverage bounds
+REGION_EDGES = (0.02, 0.98)  # regions: the exact coverage's bins (np.digitize) ...
+REGIONS = {"interior": 2, "ramp": 1, "outside": 0}  # ... from 0.98 on, between, below 0.02
 
 
 def regions(folder: Path, settings=None, samples: int = 4) -> dict:
     """Where the soft coverage's centroid error lives. Per frame where the mask is whole, the
     segmentation's coverage (clipped to [0, 1], within its band, as its moments take it) minus the
-    exact coverage, the exposure's average of the true silhouette at the recording's sub-frames
-    (:func:`_subframe_poses`) rendered hard at ``samples`` x ``samples`` a pixel. Split by the exact
-    coverage into :data:`REGIONS` (interior >= 0.98, the ramp between, outside <= 0.02), each
-    region's share of the centroid error ``sum e (x - c) / A`` (px) and of the area ``sum e / A``,
-    with :func:`_stats` over the frames, and the region's mean and mean absolute per-pixel error.
-    ``centroid_if_independent``: the RMS per axis the same per-pixel errors would give with
-    independent random signs, ``sqrt(sum e^2 |x - c|^2 / 2) / A``: an error far above it is
-    correlated from pixel to pixel (or systematic), not each pixel's own noise.
-    ``total``: the three summed. Pinhole recordings only."""
+    exact coverage (:func:`_exact_coverage`, the exposure's average of the true silhouette at the
+    recording's sub-frames, ``samples`` x ``samples`` a pixel). Split by the exact coverage at
+    :data:`REGION_EDGES` into :data:`REGIONS`, each region's share of the centroid error
+    ``sum e (x - c) / A`` (px) and of the area ``sum e / A``, with :func:`_stats` over the frames,
+    and the region's mean and mean absolute per-pixel error. ``centroid_if_independent``: the RMS
+    per axis the same per-pixel errors would give with independent random signs,
+    ``sqrt(sum e^2 |x - c|^2 / 2) / A``: an error far above it is correlated from pixel to pixel
+    (or systematic), not each pixel's own noise. ``total``: the three summed. Pinhole recordings
+    only."""
     import torchfit.video as video
-    from torchfit.render import RenderMesh, render_silhouettes
+    from torchfit.render import RenderMesh
 
     settings = settings or SegmentationSettings()
     truth, shape, camera = recording_parts(folder)
-    if any(abs(c) > 0 for c in camera.dist_coeffs):
+    if camera.distorted:
         raise SystemExit("a lens recording: the exact coverage here takes no distortion")
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
     sub_position, sub_rotation = _subframe_poses(truth)
-    subframes = sub_position.shape[1]
     mesh = RenderMesh.from_shape(shape, torch.float64)
     velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
-    shares = {name: [] for name, _, _ in REGIONS}  # per frame (cx, cy, area, mean error, mean |error|)
+    shares = {name: [] for name in REGIONS}  # per frame (cx, cy, area, mean error, mean |error|, independent)
     for t in np.flatnonzero(_whole(masks)):
         rows, cols = np.nonzero(masks[t])
         pad = settings.coverage_near_px + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
         y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
         y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
         h, w = y1 - y0, x1 - x0
-        window = torch.tensor([[x0 - 0.5 + 0.5 / samples, y0 - 0.5 + 0.5 / samples, 1.0 / samples]] * subframes,
-                              dtype=torch.float64)
-        with torch.no_grad():
-            hard = render_silhouettes(mesh, camera, torch.as_tensor(sub_rotation[t])[None],
-                                      torch.as_tensor(sub_position[t])[None], window[None],
-                                      size=(h * samples, w * samples), sigma=None)[0]
-        exact = hard.mean(0).reshape(h, samples, w, samples).mean((1, 3)).numpy()
+        exact = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, h, w, samples)
         band = video.motion_band(masks[t], settings.coverage_near_px, velocity[t])[y0:y1, x0:x1]
         cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
         error, area = cover - exact, exact.sum()
         v, u = np.mgrid[0:h, 0:w]
         cu, cv = (exact * u).sum() / area, (exact * v).sum() / area
-        for name, low, high in REGIONS:
-            inside = (exact > low) & (exact <= high) if name != "interior" else exact >= low
+        region = np.digitize(exact, REGION_EDGES)
+        for name, index in REGIONS.items():
+            inside = region == index
             e = error * inside
             shares[name].append(((e * (u - cu)).sum() / area, (e * (v - cv)).sum() / area, e.sum() / area,
                                  float(error[inside].mean()) if inside.any() else 0.0,
