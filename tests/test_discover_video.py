@@ -501,7 +501,7 @@ def test_held_out_fit_sees_no_held_out_frame():
     video = dv.VideoProblem(problem, candidates=("time_scale",), heldout_deviance=True)
     base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
     video._set_noise(base)
-    warm = SimpleNamespace(payload={"model": base, "held_model": base})
+    warm = SimpleNamespace(payload={"model": base, "held_models": [base]})
     clean = video.fit(("time_scale",), warm)
     held = torch.as_tensor(video.held)
     table = video.edge_table.clone()
@@ -529,6 +529,46 @@ def test_held_out_fit_sees_no_held_out_frame():
     assert torch.allclose(rows[:frames], torch.as_tensor(np.concatenate([whitened[c] for c in dv.CHANNELS])))
 
 
+def test_backcast_holds_out_the_first_frames_as_well_and_scores_the_mean():
+    """``backcast=True``: a second split holds out the first quarter of the used frames, fitted
+    without them and predicted backward. Moving the first quarter's observed centroids by 3 px
+    leaves the forecast split's fit as it was and makes the backcast split's prediction worse;
+    the held-out RMS is the mean of the two splits' RMS, and the held-out deviance their sum. The
+    forecast split alone (the default) is the same split as the backcast run's first."""
+    from types import SimpleNamespace
+
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
+    single = dv.VideoProblem(problem, candidates=("time_scale",))
+    video = dv.VideoProblem(problem, candidates=("time_scale",), backcast=True, heldout_deviance=True)
+    used = video.problem.used.cpu().numpy().astype(bool)
+    (forecast_train, forecast), (backcast_train, backcast) = video.splits
+    assert np.array_equal(forecast, single.held) and np.array_equal(forecast_train, single.train)
+    idx = np.flatnonzero(used)
+    assert np.array_equal(np.flatnonzero(backcast), idx[:forecast.sum()])  # the first frames, as many
+    assert np.array_equal(backcast_train, used & ~backcast)
+    base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(base)
+    warm = SimpleNamespace(payload={"model": base, "held_models": [base, base]})
+    clean = video.fit(("time_scale",), warm)
+    assert clean.heldout_rms == pytest.approx(np.mean(clean.payload["heldout_split_rms"]))
+    table = video.edge_table.clone()
+    first = torch.as_tensor(backcast)
+    table[:, :, first, 1] -= 3.0 * table[:, :, first, 0]  # m10 -= 3 m00: centroid x - 3 px
+    video.edge_table = table
+    moved = video.fit(("time_scale",), warm)
+    forecast_fit = [fit.payload["held_models"][0].values["time_scale"]["time_scale"] for fit in (clean, moved)]
+    assert float(forecast_fit[0]) != float(forecast_fit[1])  # the forecast's fit sees the first frames
+    backcast_fit = [float(fit.payload["held_models"][1].values["time_scale"]["time_scale"]) for fit in (clean, moved)]
+    assert backcast_fit[0] == backcast_fit[1]  # the backcast's fit does not
+    assert moved.payload["heldout_split_rms"][1] > clean.payload["heldout_split_rms"][1] + 1.0
+    assert moved.heldout_rms == pytest.approx(np.mean(moved.payload["heldout_split_rms"]))
+    terms = [video._heldout_terms(model, *video._jacobian(model, torch.as_tensor(train) & video.problem.used), held)
+             for model, (train, held) in zip(moved.payload["held_models"], video.splits)]
+    assert moved.heldout_deviance == pytest.approx(sum(sum(t) for t in terms), rel=1e-6)
+
+
 def test_hubers_criterion_keeps_a_few_bad_frames_from_pulling_the_fit():
     """``robust=2``: three train frames in a row whose observed centroid is 3 px off (a
     segmentation's bad stretch, whitened residuals 6-15 noise units) move the fitted clock about an
@@ -553,7 +593,7 @@ def test_hubers_criterion_keeps_a_few_bad_frames_from_pulling_the_fit():
         table[:, :, bad, 3] = m[..., 3] + 2 * shift * m[..., 1] + shift**2 * m[..., 0]
         table[:, :, bad, 4] = m[..., 4] + shift * m[..., 2]
         video.edge_table = table
-        fit = video.fit(("time_scale",), SimpleNamespace(payload={"model": base, "held_model": base}))
+        fit = video.fit(("time_scale",), SimpleNamespace(payload={"model": base, "held_models": [base]}))
         return video, fit, float(fit.payload["model"].values["time_scale"]["time_scale"])
 
     _, _, clean = fitted(None, 0.0)

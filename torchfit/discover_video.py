@@ -475,6 +475,13 @@ class VideoProblem:
             the plain one). The segmentation's error is heavy-tailed: its RMS is 1.1-1.6 noise
             floors where its robust spread is 0.7-0.9 (experiments/discover/HISTORY.md,
             twenty-third session). None: squares (the default).
+        backcast: hold out a second part as well, the first ``holdout`` of the used frames,
+            predicted backward from the rest (the flight's start from its later frames); each
+            fit's ``heldout_rms`` is then the mean of the two held-out parts' RMS (the last
+            part's forecast and the first part's backcast), ``heldout_deviance`` their sum. One
+            split judges a candidate by one extrapolation: a drag fitted without the flight's
+            end read 1.5-2.1 times the truth and overshot it (experiments/discover/HISTORY.md,
+            twenty-seventh session). False: the last part alone (the default).
         heldout_deviance: also give each fit its held-out predictive deviance
             (``ModelFit.heldout_deviance``, ``heldout_logdet``), which
             ``SelectionSettings.heldout_margin`` decides by; one more Jacobian per fit, so only
@@ -495,7 +502,7 @@ class VideoProblem:
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
-                 progress: Callable[[str], None] | None = None):
+                 backcast: bool = False, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -544,9 +551,13 @@ class VideoProblem:
         n_held = max(1, int(round(holdout * len(idx))))
         if len(idx) - n_held < 8:
             raise ValueError(f"too few usable frames for discover: {len(idx)}, need at least {8 + n_held}")
-        self.train = used.copy()
-        self.train[idx[-n_held:]] = False
-        self.held = used & ~self.train
+        # (train, held) masks of each held-out part: the last frames, and with backcast the first
+        self.splits = []
+        for held_idx in (idx[-n_held:],) + ((idx[:n_held],) if backcast else ()):
+            train = used.copy()
+            train[held_idx] = False
+            self.splits.append((train, used & ~train))
+        self.train, self.held = self.splits[0]
         self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
         # the soft coverage's raw moments less the mask's: what the edge nuisance's moments of the
         # masks are shifted by when the observation is the coverage
@@ -952,13 +963,13 @@ class VideoProblem:
         reduced = float(r.square().sum()) / max(n - p, 1)
         return torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
 
-    def _heldout_terms(self, held_model: _Model, resid: Tensor, jac: Tensor) -> tuple[float, float]:
+    def _heldout_terms(self, held_model: _Model, resid: Tensor, jac: Tensor, held: np.ndarray) -> tuple[float, float]:
         """The held-out frames' predictive deviance's two terms (:func:`torchfit.discover.predictive_terms`)
         under ``held_model``, fitted on the train frames with (N,) residual ``resid`` and (N, P)
-        Jacobian ``jac`` there: its parameter covariance carried to the held-out frames' whitened
+        Jacobian ``jac`` there: its parameter covariance carried to the (T,) ``held`` frames' whitened
         residuals (their AR(1) chain starts afresh at the first held-out frame)."""
         cov = self._covariance(held_model, resid, jac)
-        held = torch.as_tensor(self.held, device=self.problem.masks.device) & self.problem.used
+        held = torch.as_tensor(held, device=self.problem.masks.device) & self.problem.used
         held_resid, held_jac = self._jacobian(held_model, held)
         frames = len(held_resid) - len(self.prior_terms(held_model.nuisances))  # the prior rows come last
         return predictive_terms(held_resid[:frames], held_jac[:frames], cov)
@@ -1008,24 +1019,31 @@ class VideoProblem:
         return params
 
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict],
-               held_model: _Model, held_terms: tuple[float, float] | None = None) -> ModelFit:
+               held_models: list[_Model], held_terms: list[tuple[float, float]] | None = None) -> ModelFit:
+        """``model`` fitted on all used frames, with ``std`` its :meth:`_uncertainty`, scored as a
+        ModelFit; ``held_models`` the fits of each of ``self.splits``' train frames, whose
+        predictions of their held-out frames (mean over the splits) and ``held_terms`` (their
+        :meth:`_heldout_terms`, summed) are the held-out scores."""
         channels = self.residuals(model)
         used = self.problem.used.cpu().numpy().astype(bool)
         whitened = self.whitened_channels(channels, used)
         everything = np.concatenate(list(whitened.values()))
         per_frame = np.nansum(np.stack(list(whitened.values())) ** 2, 0)  # (N,) chi-squared of each used frame
-        held_channels = self.residuals(held_model)
-        held = self._normalised(held_channels, self.held)
+        held_channels = [self.residuals(held_model) for held_model in held_models]
+        split_rms = [float(np.sqrt(np.nanmean(self._normalised(chans, held) ** 2)))
+                     for chans, (_, held) in zip(held_channels, self.splits)]
+        split_centroid = [float(np.sqrt(np.nanmean(np.hypot(chans["centroid_x"], chans["centroid_y"])[held] ** 2)))
+                          for chans, (_, held) in zip(held_channels, self.splits)]
         n_free = self._free_count(model)
         # the nuisances' prior terms count as observations
         priors = self.prior_terms(model.nuisances)
         rss = float(np.nansum(everything**2)) + sum(p * p for p in priors)
         n_obs = int(np.isfinite(everything).sum()) + len(priors)
         centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
-        held_centroid = np.hypot(held_channels["centroid_x"], held_channels["centroid_y"])
         return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std[0]), math.sqrt(rss / max(n_obs, 1)),
-                        float(np.sqrt(np.nanmean(held**2))),
-                        payload={"model": model, "held_model": held_model, "channels": channels,
+                        float(np.mean(split_rms)),
+                        payload={"model": model, "held_model": held_models[0], "held_models": held_models,
+                                 "channels": channels,
                                  "edge_px": {"value": model.nuisances[0], "std": std[1][0],
                                              "ends_minus_sides": 2 * model.nuisances[1],
                                              "ends_minus_sides_std": 2 * std[1][1], "form": EDGE_FORM},
@@ -1033,14 +1051,15 @@ class VideoProblem:
                                            {"value": self.nuisance(model.nuisances, name),
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
-                                 "held_channels": held_channels,
-                                 "heldout_centroid_px": float(np.sqrt(np.nanmean(held_centroid[self.held] ** 2))),
+                                 "held_channels": held_channels[0],
+                                 "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
+                                 "heldout_centroid_px": float(np.mean(split_centroid)),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
                         parts=per_frame, wald=std[2],
-                        heldout_deviance=None if held_terms is None else sum(held_terms),
-                        heldout_logdet=None if held_terms is None else held_terms[1],
+                        heldout_deviance=None if held_terms is None else sum(sum(t) for t in held_terms),
+                        heldout_logdet=None if held_terms is None else sum(t[1] for t in held_terms),
                         heldout_params={name: {p: torch.as_tensor(v).tolist() for p, v in values.items()}
-                                        for name, values in held_model.values.items()})
+                                        for name, values in held_models[0].values.items()})
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
@@ -1092,7 +1111,7 @@ class VideoProblem:
             if len(ended) > 1:
                 self.say(f"  baseline from {len(ended)} search candidates: chi2 "
                          + ", ".join(f"{self._cost(run[1]):.1f}" for run in ended))
-            held_model, held_resid, held_jac = self._lm(model, self.train, self.iterations)
+            helds = [self._lm(model, train, self.iterations) for train, _ in self.splits]
         else:
             new = tuple(name for name in effects if name not in warm.payload["model"].values)
             _, screened = self._screen(self._extend(warm.payload["model"], effects), new, everything)
@@ -1100,10 +1119,13 @@ class VideoProblem:
             # the prediction's fit sees no held-out frame: the new effects are screened again,
             # from the warm held-out fit, on the train frames alone (a start chosen on all
             # frames could stall in another basin than the train frames' best, and did)
-            _, held_screened = self._screen(self._extend(warm.payload["held_model"], effects), new, self.train)
-            held_model, held_resid, held_jac = self._lm(held_screened, self.train, self.iterations)
-        out = self._score(effects, model, self._uncertainty(model, resid, jac), held_model,
-                          self._heldout_terms(held_model, held_resid, held_jac) if self.heldout_deviance else None)
+            helds = []
+            for (train, _), warm_held in zip(self.splits, warm.payload["held_models"]):
+                _, held_screened = self._screen(self._extend(warm_held, effects), new, train)
+                helds.append(self._lm(held_screened, train, self.iterations))
+        terms = ([self._heldout_terms(*run, held) for run, (_, held) in zip(helds, self.splits)]
+                 if self.heldout_deviance else None)
+        out = self._score(effects, model, self._uncertainty(model, resid, jac), [run[0] for run in helds], terms)
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
                  f"{time.perf_counter() - clock:.0f} s")
@@ -1158,8 +1180,8 @@ class VideoProblem:
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
             self.problem.used = self.problem.used & keep
-            self.train = self.train & ~outliers
-            self.held = self.held & ~outliers
+            self.splits = [(train & ~outliers, held & ~outliers) for train, held in self.splits]
+            self.train, self.held = self.splits[0]
             used = used & ~outliers
         if self.speed_noise:  # floors that grow with the speed of the baseline's silhouette
             speed = np.linalg.norm(np.gradient(fitted[1][0].cpu().numpy(), axis=0), axis=1)
@@ -1267,7 +1289,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
-                   progress: Callable[[str], None] | None = None) -> dict:
+                   backcast: bool = False, progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1296,6 +1318,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             data (see :class:`VideoProblem`).
         robust: Huber's threshold in noise units: the criterion's loss (see :class:`VideoProblem`);
             None: squares.
+        backcast: the held-out test also predicts the first part of the frames backward from the
+            rest, and scores the mean of the two parts' RMS (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1312,7 +1336,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          iterations=iterations, edge_px=edge_px, exposure=exposure, coverage=coverage,
                          fit_exposure=fit_exposure, point_spread=point_spread,
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
-                         heldout_deviance=settings.heldout_margin is not None, robust=robust, progress=say)
+                         heldout_deviance=settings.heldout_margin is not None, robust=robust, backcast=backcast,
+                         progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1352,7 +1377,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
-        "heldout_frames": [int(span[i]) for i in np.flatnonzero(video.held)],
+        "heldout_frames": [int(span[i]) for i in np.flatnonzero(np.any([held for _, held in video.splits], 0))],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
         "settings": asdict(settings),

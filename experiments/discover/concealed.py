@@ -82,7 +82,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
-            heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False) -> dict:
+            heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
+            backcast: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -98,7 +99,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
-                          speed_noise=speed_noise, robust=robust)
+                          speed_noise=speed_noise, robust=robust, backcast=backcast)
 
 
 def robust_suffix(robust: float | None) -> str:
@@ -676,7 +677,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
-         robust: float | None = None, declare_lens: bool = False) -> None:
+         robust: float | None = None, declare_lens: bool = False, backcast: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -695,7 +696,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + ("_speednoise" if speed_noise else "")
                             + heldout_suffix(heldout_margin) + robust_suffix(robust)
-                            + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else "")
+                            + ("_backcast" if backcast else "") + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else "")
                             + ("_lensdeclared" if declare_lens else ""))
     if table_only:
         return print(rebuild(out, recordings))
@@ -720,7 +721,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
-                          heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens)
+                          heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
+                          backcast=backcast)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -795,6 +797,10 @@ if __name__ == "__main__":
     ap.add_argument("--robust", type=float, metavar="K",
                     help="the criterion takes Huber's loss at K noise units instead of squares "
                          "(VideoProblem(robust=K); results/concealed..._huber<K>/)")
+    ap.add_argument("--backcast", action="store_true",
+                    help="the held-out test also predicts the first quarter of the frames backward from the rest "
+                         "and scores the mean of the two parts (discover_video(backcast=True); "
+                         "results/concealed..._backcast/)")
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
@@ -822,7 +828,7 @@ if __name__ == "__main__":
                                    "linear" if args.linear_shading else None)
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
-    variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust)
+    variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + ("_backcast" if args.backcast else "")
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -836,7 +842,7 @@ if __name__ == "__main__":
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
                             or args.linear_shading or args.speed_noise or args.heldout_margin is not None
-                            or args.robust is not None):
+                            or args.robust is not None or args.backcast):
         if variant:
             suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
@@ -857,13 +863,17 @@ if __name__ == "__main__":
             options = ((["noise floors growing with the speed"] if args.speed_noise else [])
                        + ([f"held-out deviance within {args.heldout_margin:g}"] if args.heldout_margin is not None
                           else [])
-                       + ([f"Huber's loss at {args.robust:g}"] if args.robust is not None else []))
+                       + ([f"Huber's loss at {args.robust:g}"] if args.robust is not None else [])
+                       + (["the first quarter backcast as well"] if args.backcast else []))
             label = ", ".join(path_parts + options)
-            # an option on another path: against that path without it
-            path = (variant.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
+            # an option on another path: against that path without it; the backcast against the
+            # same run without it (every other option kept)
+            path = (variant.removesuffix("_backcast") if args.backcast else
+                    variant.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
                     .removesuffix("_speednoise") if options else "")
+            base_label = ", ".join(path_parts + (options[:-1] if args.backcast else []))
             text = side_by_side(suffix, label, column="segmentation", base=path,
-                                base_label=", ".join(path_parts) if path else "default")
+                                base_label=base_label if path else "default")
         elif args.crf is not None:
             suffix, label = f"_crf{args.crf}", f"crf {args.crf}"
             text = side_by_side(suffix, label, column="H.264 quality")
@@ -937,4 +947,4 @@ if __name__ == "__main__":
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
-         declare_lens=args.declare_lens)
+         declare_lens=args.declare_lens, backcast=args.backcast)
