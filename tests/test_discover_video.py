@@ -173,7 +173,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
 
     small = SMALL
     cfg = _quick_discover(f"data.truth={small / 'truth.json'}", "params.edge_px=0.05", "params.heldout_margin=6",
-                          overlay=True)
+                          "params.backcast=null", overlay=True)
     summary = run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
@@ -193,6 +193,12 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     assert np.isfinite(base["heldout_deviance"]) and base["heldout_deviance"] > base["heldout_logdet"] > 0
     assert content["settings"]["heldout_margin"] == 6 and tried["heldout_deviance_rise"] is not None
     assert len(base["frame_chi2"]) == len(content["criterion_frames"]) == len(tried["unit_delta_chi2"]) > 8
+    # backcast null, the path's default: on the exposure path the last and the first quarter are
+    # held out, and the model's RMS is their mean
+    assert content["backcast"] is True and len(base["heldout_split_rms"]) == 2
+    assert base["heldout_rms"] == pytest.approx(np.mean(base["heldout_split_rms"]))
+    assert base["heldout_centroid_px"] == pytest.approx(np.mean(base["heldout_split_centroid_px"]))
+    assert any(line.startswith("Held out (params.backcast)") for line in content["report"])
     edge = base["edge_px"]
     prior = (edge["value"] / EDGE_PRIOR_PX) ** 2 + (edge["ends_minus_sides"] / 2 / EDGE_SHAPE_PRIOR_PX) ** 2
     assert sum(base["frame_chi2"]) + prior == pytest.approx(base["chi2_per_obs"] * base["n_obs"], rel=1e-9)
@@ -914,6 +920,22 @@ def test_robust_setting_is_hubers_on_the_exposure_path_by_default():
             robust_setting(bad, exposure)
 
 
+def test_backcast_setting_is_on_the_exposure_path_by_default():
+    """``params.backcast``: null holds out the first quarter as well with an exposure and not
+    without; true and false hold on either path; anything else is refused, named."""
+    from torchfit.run import ConfigError, backcast_setting
+    from torchfit.search import Exposure
+
+    exposure = Exposure(0.5, 0)
+    assert backcast_setting(None, exposure) is True
+    assert backcast_setting(None, None) is False
+    assert backcast_setting(False, exposure) is False
+    assert backcast_setting(True, None) is True
+    for bad in (1, 0.25, "yes"):
+        with pytest.raises(ConfigError, match="params.backcast must be"):
+            backcast_setting(bad, exposure)
+
+
 def test_cli_exposure_is_checked_and_recorded(tmp_path):
     """``data.exposure``: a fraction outside [0, 1], taps of 1, true or a word other than auto are
     refused with the key named; a quick run with one compares the soft coverage and records the
@@ -954,6 +976,7 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     run(cfg, tmp_path / "masks")
     content = json.loads((tmp_path / "masks" / "discover.json").read_text())
     assert content["exposure"] is None and content["exposure_fitted"] is None and content["robust"] is None
+    assert content["backcast"] is False  # the last quarter alone (the default, and null's on the masks)
 
 
 def test_cli_exposure_with_lens_distortion_models_the_blur_on_the_undistorted_coverage(tmp_path):

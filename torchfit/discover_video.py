@@ -1365,7 +1365,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise": video.noise,
         "noise_edge_px": edge_px,
         "noise_speed_share": video.speed_share if speed_noise else None,
-        "robust": robust,
+        "robust": robust, "backcast": backcast,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,
@@ -1374,6 +1374,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "heldout_rms": f.heldout_rms, "heldout_deviance": f.heldout_deviance,
                     "heldout_logdet": f.heldout_logdet,
                     "heldout_centroid_px": f.payload["heldout_centroid_px"],
+                    "heldout_split_rms": f.payload["heldout_split_rms"],
+                    "heldout_split_centroid_px": f.payload["heldout_split_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
@@ -1587,6 +1589,13 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
                  f"(noise floors: " + ", ".join(f"{k} {v:.2g}" for k, v in video.noise.items()) + ").")
+    if len(video.splits) > 1:
+        split = [f"{a:.2f} -> {b:.2f} px" for a, b in zip(base.payload["heldout_split_centroid_px"],
+                                                         final.payload["heldout_split_centroid_px"])]
+        counts = [int(held.sum()) for _, held in video.splits]
+        lines.append(f"Held out (params.backcast): the last {counts[0]} frames predicted from the rest "
+                     f"({split[0]}) and the first {counts[1]} predicted backward ({split[1]}); the held-out "
+                     f"figures are the mean of the two.")
     if video.robust is not None:
         lines.append(f"Criterion: Huber's loss at {video.robust:g} noise units (params.robust): a frame further off "
                      f"counts linearly, not squared, so chi2 above is Huber's cost.")

@@ -123,6 +123,18 @@ def robust_setting(value, exposure: Exposure | None) -> float | None:
     return float(value)
 
 
+def backcast_setting(value, exposure: Exposure | None) -> bool:
+    """``params.backcast`` as :func:`torchfit.discover_video.discover_video`'s ``backcast``: null,
+    the path's default (the first quarter held out as well where the blur is modelled, the path it
+    was measured on; the last quarter alone on the masks); true or false on either path."""
+    if value is None:
+        return exposure is not None
+    if not isinstance(value, bool):
+        raise ConfigError(f"params.backcast must be true (the first quarter held out as well, predicted backward), "
+                          f"false (the last quarter alone) or null for the path's default, got {value!r}")
+    return value
+
+
 def _transfer_line(observation: Observation, segmentation: SegmentationSettings) -> str:
     """The log's line on how the pixel values were read, with the key to set where ``auto`` found
     no curve named in the file (camera footage usually is stored through one)."""
@@ -455,6 +467,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if not isinstance(speed_noise, bool):
         raise ConfigError(f"params.speed_noise must be true or false, got {speed_noise!r}")
     robust = settings.pop("robust", None)
+    backcast = settings.pop("backcast", None)
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -501,6 +514,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     # an exposure is a start, fitted unless data.fit_exposure=false (experiments/discover/HISTORY.md)
     fit_exposure = exposure is not None and fit_exposure is not False
     robust = robust_setting(robust, exposure)
+    backcast = backcast_setting(backcast, exposure)
     problem, span = build_problem(observation, shape, camera, g=float(cfg.dynamics.g), dtype=ctx["dtype"],
                                   device=ctx["device"])
     truth = json.loads(Path(str(data.truth)).read_text()) if data.truth else None
@@ -508,7 +522,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             robust=robust, progress=ctx["progress"])
+                             robust=robust, backcast=backcast, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
