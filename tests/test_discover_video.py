@@ -570,6 +570,14 @@ def test_backcast_holds_out_the_first_frames_as_well_and_scores_the_mean():
     assert backcast_fit[0] == backcast_fit[1]  # the backcast's fit does not
     assert moved.payload["heldout_split_rms"][1] > clean.payload["heldout_split_rms"][1] + 1.0
     assert moved.heldout_rms == pytest.approx(np.mean(moved.payload["heldout_split_rms"]))
+    # residuals.png's channels: each held-out part from its own split's prediction, the rest from
+    # the fit to all frames
+    merged = dv._merged(moved, video)
+    middle = used & ~forecast & ~backcast
+    for name in dv.CHANNELS:
+        assert np.array_equal(merged[name][backcast], moved.payload["held_channels"][1][name][backcast], equal_nan=True)
+        assert np.array_equal(merged[name][forecast], moved.payload["held_channels"][0][name][forecast], equal_nan=True)
+        assert np.array_equal(merged[name][middle], moved.payload["channels"][name][middle], equal_nan=True)
     terms = [video._heldout_terms(model, *video._jacobian(model, torch.as_tensor(train) & video.problem.used), held)
              for model, (train, held) in zip(moved.payload["held_models"], video.splits)]
     assert moved.heldout_deviance == pytest.approx(sum(sum(t) for t in terms), rel=1e-6)

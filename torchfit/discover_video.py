@@ -1051,7 +1051,7 @@ class VideoProblem:
                                            {"value": self.nuisance(model.nuisances, name),
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
-                                 "held_channels": held_channels[0],
+                                 "held_channels": held_channels,
                                  "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
                                  "heldout_centroid_px": float(np.mean(split_centroid)),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -1247,9 +1247,10 @@ def motion_stretch(observed_cov: np.ndarray, fitted_centroid: np.ndarray, fitted
 
 def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: dict, train: np.ndarray,
                   held: np.ndarray, path: Path, frame_scale: np.ndarray | None = None) -> None:
-    """Residual channels against time, one column per model (baseline, then each effect added);
-    the grey band is each channel's noise floor, times (T,) ``frame_scale`` per frame where the
-    floors grow with the speed."""
+    """Residual channels against time, one column per model (baseline, then each effect added),
+    ``models`` each ``(label, {channel: (T,) residuals})``, the (T,) ``train`` frames in blue and
+    the (T,) ``held`` ones in red; the grey band is each channel's noise floor, times (T,)
+    ``frame_scale`` per frame where the floors grow with the speed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1268,7 +1269,8 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
                 ax.fill_between(times, -band, band, color="0.85", zorder=0, lw=0)
             ax.axhline(0, color="k", lw=0.5)
             ax.plot(times[train], values[train], ".-", ms=3, lw=0.8, color="C0", label="fitted frames")
-            ax.plot(times[held], values[held], ".-", ms=3, lw=0.8, color="C3", label="held out (predicted)")
+            # NaN between held-out parts: a forecast and a backcast are not joined across the flight
+            ax.plot(times, np.where(held, values, np.nan), ".-", ms=3, lw=0.8, color="C3", label="held out (predicted)")
             if row == 0:
                 ax.set_title(label, fontsize=9)
             if col == 0:
@@ -1343,6 +1345,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     chain = [fit for _, fit in labelled]
     times = problem.times.cpu().numpy()
     used = video.problem.used.cpu().numpy().astype(bool)
+    held_any = np.any([held for _, held in video.splits], 0)  # (T,) frames some split holds out
 
     def as_residuals(fit_: ModelFit) -> Residuals:
         return Residuals(times, used, fit_.payload["channels"], video.noise)
@@ -1379,7 +1382,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
-        "heldout_frames": [int(span[i]) for i in np.flatnonzero(np.any([held for _, held in video.splits], 0))],
+        "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
         "settings": asdict(settings),
@@ -1412,7 +1415,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
         plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
-                       for label, f in labelled], times, video.noise, video.train, video.held,
+                       for label, f in labelled], times, video.noise, used & ~held_any, held_any,
                       out_dir / "residuals.png", video.frame_scale)
         (out_dir / "report.txt").write_text("\n".join(report) + "\n")
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]
@@ -1525,9 +1528,12 @@ def size_mismatch_lines(mismatch: dict | None, verdict: Sequence[str]) -> list[s
 
 
 def _merged(fit_: ModelFit, video: VideoProblem) -> dict:
-    """Channels of the all-frame fit on the fitted frames and of the held-out prediction after them."""
-    return {name: np.where(video.held, fit_.payload["held_channels"][name], fit_.payload["channels"][name])
-            for name in CHANNELS}
+    """Channels of the all-frame fit on the frames no split holds out, and of each split's held-out
+    prediction on the frames it holds out."""
+    out = dict(fit_.payload["channels"])
+    for channels, (_, held) in zip(fit_.payload["held_channels"], video.splits):
+        out = {name: np.where(held, channels[name], out[name]) for name in CHANNELS}
+    return out
 
 
 def withheld_line(verdict: Sequence[str], final_iou: float, baseline_iou: float | None = None) -> str:

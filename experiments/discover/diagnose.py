@@ -281,7 +281,7 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
     base = video.fit((), None, searched)
     out = {}
     for label, fit in (("baseline", base), (effect, video.fit((effect,), base))):
-        held = fit.payload["held_channels"]
+        held = fit.payload["held_channels"][0]  # the forecast's (the last quarter's)
         out[label] = {"heldout_noise_floors": fit.heldout_rms,
                       "nuisance_names": list(video.nuisance_names),
                       "edge_all_frames": [float(x) for x in fit.payload["model"].nuisances],
