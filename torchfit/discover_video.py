@@ -478,7 +478,8 @@ class VideoProblem:
         backcast: hold out a second part as well, the first ``holdout`` of the used frames,
             predicted backward from the rest (the flight's start from its later frames); each
             fit's ``heldout_rms`` is then the mean of the two held-out parts' RMS (the last
-            part's forecast and the first part's backcast), ``heldout_deviance`` their sum. One
+            part's forecast and the first part's backcast), ``heldout_deviance`` their sum
+            (``heldout_params`` stay the forecast's fit's, the first split's). One
             split judges a candidate by one extrapolation: a drag fitted without the flight's
             end read 1.5-2.1 times the truth and overshot it (experiments/discover/HISTORY.md,
             twenty-seventh session). False: the last part alone (the default).
