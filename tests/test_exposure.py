@@ -229,7 +229,7 @@ def test_point_spread_prior_holds_the_spread_and_counts_as_an_observation():
         video._set_noise(start)
         model, resid, jac = video._lm(start, everything, 15)
         found[prior] = video.nuisance(model.nuisances, "point_spread")
-        fit = video._score((), model, video._uncertainty(model, resid, jac), model)
+        fit = video._score((), model, video._uncertainty(model, resid, jac), [model])
         assert fit.n_obs == int(np.isfinite(np.concatenate(list(video.whitened_channels(
             video.residuals(model), video.problem.used.cpu().numpy().astype(bool)).values()))).sum()) + 3
     assert abs(found[(1.0, 1.0)] - 1.5) < 0.2, found
