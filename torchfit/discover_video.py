@@ -558,7 +558,6 @@ class VideoProblem:
             train = used.copy()
             train[held_idx] = False
             self.splits.append((train, used & ~train))
-        self.train, self.held = self.splits[0]
         self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
         # the soft coverage's raw moments less the mask's: what the edge nuisance's moments of the
         # masks are shifted by when the observation is the coverage
@@ -652,6 +651,16 @@ class VideoProblem:
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
                 for k, v in channel_values(observed, self._spread(fitted, nuisances)).items()}
+
+    @property
+    def train(self) -> np.ndarray:
+        """(T,) the frames the forecast's fit sees: all used frames but the last ``holdout``."""
+        return self.splits[0][0]
+
+    @property
+    def held(self) -> np.ndarray:
+        """(T,) the frames the forecast predicts: the last ``holdout`` of the used frames."""
+        return self.splits[0][1]
 
     def _normalised(self, channels: dict, mask: np.ndarray) -> np.ndarray:
         """(N, C) residuals of the frames in ``mask`` divided by the noise floors."""
@@ -1182,7 +1191,6 @@ class VideoProblem:
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
             self.problem.used = self.problem.used & keep
             self.splits = [(train & ~outliers, held & ~outliers) for train, held in self.splits]
-            self.train, self.held = self.splits[0]
             used = used & ~outliers
         if self.speed_noise:  # floors that grow with the speed of the baseline's silhouette
             speed = np.linalg.norm(np.gradient(fitted[1][0].cpu().numpy(), axis=0), axis=1)

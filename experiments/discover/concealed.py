@@ -108,6 +108,12 @@ def robust_suffix(robust: float | None) -> str:
     return "" if robust is None else f"_huber{robust:g}"
 
 
+def backcast_suffix(backcast: bool) -> str:
+    """The results folder's suffix of a run whose held-out test also backcasts the first quarter
+    (none without)."""
+    return "_backcast" if backcast else ""
+
+
 def heldout_suffix(margin: float | None) -> str:
     """The results folder's suffix of a run whose held-out test is the predictive deviance within
     ``margin`` (none for the default rule)."""
@@ -696,7 +702,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + ("_speednoise" if speed_noise else "")
                             + heldout_suffix(heldout_margin) + robust_suffix(robust)
-                            + ("_backcast" if backcast else "") + edge_suffix(edge_px) + variant + (f"_read_{read_as}" if read_as else "")
+                            + backcast_suffix(backcast) + edge_suffix(edge_px) + variant
+                            + (f"_read_{read_as}" if read_as else "")
                             + ("_lensdeclared" if declare_lens else ""))
     if table_only:
         return print(rebuild(out, recordings))
@@ -828,7 +835,7 @@ if __name__ == "__main__":
                                    "linear" if args.linear_shading else None)
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
-    variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + ("_backcast" if args.backcast else "")
+    variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -868,7 +875,7 @@ if __name__ == "__main__":
             label = ", ".join(path_parts + options)
             # an option on another path: against that path without it; the backcast against the
             # same run without it (every other option kept)
-            path = (variant.removesuffix("_backcast") if args.backcast else
+            path = (variant.removesuffix(backcast_suffix(True)) if args.backcast else
                     variant.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
                     .removesuffix("_speednoise") if options else "")
             base_label = ", ".join(path_parts + (options[:-1] if args.backcast else []))

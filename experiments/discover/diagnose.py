@@ -56,7 +56,7 @@ import numpy as np
 import torch
 from concealed import CANDIDATES, recording_exposure
 from segmentation_error import frame_errors, mask_centroids, measure, segment_watching
-from true_masks import load_problem, problem_of, recording_parts, with_masks
+from true_masks import load_problem, problem_of, recording_parts, subframe_times, with_masks
 
 import torchfit.discover_video as dv
 from torchfit.rotation import quat_to_matrix, rotation_angle
@@ -523,11 +523,8 @@ def _subframe_poses(truth: dict) -> tuple[np.ndarray, np.ndarray]:
     from scipy.interpolate import CubicSpline
     from scipy.spatial.transform import Rotation, RotationSpline
 
-    per_frame, fps = truth["per_frame"], float(truth["fps"])
-    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
-    times = np.array(per_frame["time"])
-    offsets = np.arange(subframes) / (subframes - 1) - 0.5 if subframes > 1 else np.zeros(1)  # one: the frame's time
-    sub_times = times[:, None] + offsets * exposure / fps
+    per_frame = truth["per_frame"]
+    times, sub_times = subframe_times(truth)
     position = CubicSpline(times, np.array(per_frame["position"]))(sub_times)
     rotation = RotationSpline(times, Rotation.from_matrix(np.array(per_frame["R"])))(
         np.clip(sub_times, times[0], times[-1]).ravel()).as_matrix().reshape(*sub_times.shape, 3, 3)

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
-from true_masks import recording_parts
+from true_masks import recording_parts, subframe_times
 
 from torchfit.discover_video import _moments
 from torchfit.losses import mask_moments
@@ -45,15 +45,13 @@ RAMP = 0.1  # the 0.5 threshold as a ramp this wide in coverage (a sub-pixel edg
 def measure(folder: Path) -> dict:
     """Per comparison, per channel ``{"mean", "rms"}`` over the used frames."""
     truth, shape, camera = recording_parts(folder)
-    per_frame, fps = truth["per_frame"], float(truth["fps"])
-    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
-    times, position, rotation = np.array(per_frame["time"]), np.array(per_frame["position"]), np.array(per_frame["R"])
+    per_frame = truth["per_frame"]
+    position, rotation = np.array(per_frame["position"]), np.array(per_frame["R"])
     observation = load_observation(str(folder / "video.mp4"), camera=camera)
     segmented = observation.masks.astype(bool)
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
-    # sub-frame times as the recordings place them: centred on the frame, over exposure / fps
-    offsets = (np.arange(subframes) / (subframes - 1) - 0.5 if subframes > 1 else np.zeros(1)) * exposure / fps
-    sub_times = np.clip(times[:, None] + offsets[None], times[0], times[-1])  # (T, K)
+    times, sub_times = subframe_times(truth)  # as the recordings place them
+    sub_times = np.clip(sub_times, times[0], times[-1])  # (T, K)
     sub_position = CubicSpline(times, position)(sub_times)  # (T, K, 3)
     sub_rotation = RotationSpline(times, Rotation.from_matrix(rotation))(sub_times.ravel()).as_matrix()
     sub_rotation = sub_rotation.reshape(*sub_times.shape, 3, 3)
@@ -66,7 +64,7 @@ def measure(folder: Path) -> dict:
 
     with torch.no_grad():
         mid = render(rotation, position)
-        average = torch.stack([render(sub_rotation[:, k], sub_position[:, k]) for k in range(subframes)]).mean(0)
+        average = torch.stack([render(sub_rotation[:, k], sub_position[:, k]) for k in range(sub_times.shape[1])]).mean(0)
         blurred = ((average - 0.5) / RAMP + 0.5).clamp(0.0, 1.0)
     used = observation.used
     observed = {kind: mask_moments(torch.as_tensor(masks, dtype=torch.float64))

@@ -49,6 +49,16 @@ def recording_parts(folder: Path) -> tuple[dict, object, Camera]:
     return truth, load_shape(folder / "mesh.obj", density=truth["object"]["density"]), Camera.from_file(folder / "camera.json")
 
 
+def subframe_times(truth: dict) -> tuple[np.ndarray, np.ndarray]:
+    """A generated recording's (T,) frame times and (T, K) blur sub-frame times as it was rendered
+    (make_recordings.sample_times): K evenly over ``exposure_frac / fps``, centred on the frame;
+    one sub-frame (a sharp recording) at the frame's own time."""
+    subframes, exposure = int(truth["render"]["blur_subframes"]), float(truth["render"]["exposure_frac"])
+    times = np.array(truth["per_frame"]["time"])
+    offsets = np.arange(subframes) / (subframes - 1) - 0.5 if subframes > 1 else np.zeros(1)
+    return times, times[:, None] + offsets * exposure / float(truth["fps"])
+
+
 def load_problem(folder: Path, shape, camera: Camera, true_masks: bool, settings: SegmentationSettings | None = None):
     """A recording's observation, fit problem (float32, CPU) and span: its video segmented as
     discover does (with ``settings``, default the defaults), or with the engine's true masks
