@@ -399,9 +399,10 @@ def test_a_held_out_margin_judges_the_prediction_by_its_deviance():
 
 def test_a_held_out_veto_says_what_the_fit_before_the_held_out_part_reads():
     """When the held-out RMS test turns a candidate away, the report gives the candidate's value
-    as the fit to the data before the held-out part has it, beside the value on all the data (a
-    drag right on all frames that reads twice as large on the first three quarters is a poor
-    train fit, not a wrong effect); a fit that does not give it adds nothing."""
+    as each held-out split's fit has it (without the end; with a backcast, without the start as
+    well), beside the value on all the data (a drag right on all frames that reads twice as large
+    on the first three quarters is a poor train fit, not a wrong effect); a fit that does not give
+    it adds nothing."""
     from torchfit.discover import ModelFit, not_named_lines
 
     class Overshoots:
@@ -414,17 +415,23 @@ def test_a_held_out_veto_says_what_the_fit_before_the_held_out_part_reads():
         def fit(self, effects, warm):
             rss, held = (400.0, 7.0) if not effects else (250.0, 9.0)
             params = {"quadratic_drag": {"drag_coefficient": {"value": 0.762, "std": 0.05, "unit": "1"}}} if effects else {}
-            train = {"quadratic_drag": {"drag_coefficient": 1.636}} if effects and self.train else None
+            train = ([{"quadratic_drag": {"drag_coefficient": v}} for v in self.train]
+                     if effects and self.train else None)
             return ModelFit(tuple(effects), rss, 226, 15 + len(effects), params, (rss / 226) ** 0.5, held,
                             heldout_params=train)
 
-    vetoed = select_effects(Overshoots(True), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5))
+    vetoed = select_effects(Overshoots([1.636]), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5))
     assert vetoed.verdict == [] and vetoed.steps[0].scores["quadratic_drag"]["fails"] == ["heldout"]
-    assert vetoed.steps[0].scores["quadratic_drag"]["heldout_params"] == {"drag_coefficient": 1.636}
+    assert vetoed.steps[0].scores["quadratic_drag"]["heldout_params"] == [{"drag_coefficient": 1.636}]
     line = not_named_lines(vetoed, lambda s: "7.00 -> 9.00", lambda s: "")[0]
-    assert line.endswith("(7.00 -> 9.00, -29 %); fitted before the held-out part alone its drag_coefficient "
+    assert line.endswith("(7.00 -> 9.00, -29 %); fitted without the held-out end its drag_coefficient "
                          "reads 1.636 (0.762 on all the data).")
-    plain = not_named_lines(select_effects(Overshoots(False), SelectionSettings(min_heldout_gain=-0.05,
-                                                                                heldout_noise=1.5)),
+    # with a backcast, the second split's fit (without the start) is named too
+    both = select_effects(Overshoots([1.636, 0.93]), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5))
+    assert not_named_lines(both, lambda s: "7.00 -> 9.00", lambda s: "")[0].endswith(
+        "; fitted without the held-out end its drag_coefficient reads 1.636, without the held-out start its "
+        "drag_coefficient reads 0.93 (0.762 on all the data).")
+    plain = not_named_lines(select_effects(Overshoots(None), SelectionSettings(min_heldout_gain=-0.05,
+                                                                               heldout_noise=1.5)),
                             lambda s: "7.00 -> 9.00", lambda s: "")[0]
     assert plain.endswith("(7.00 -> 9.00, -29 %).")

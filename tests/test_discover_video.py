@@ -568,6 +568,9 @@ def test_backcast_holds_out_the_first_frames_as_well_and_scores_the_mean():
     assert float(forecast_fit[0]) != float(forecast_fit[1])  # the forecast's fit sees the first frames
     backcast_fit = [float(fit.payload["held_models"][1].values["time_scale"]["time_scale"]) for fit in (clean, moved)]
     assert backcast_fit[0] == backcast_fit[1]  # the backcast's fit does not
+    # the report's values "without the held-out end / start" are these two fits'
+    assert [split["time_scale"]["time_scale"] for split in moved.heldout_params] == pytest.approx(
+        [float(forecast_fit[1]), backcast_fit[1]])
     assert moved.payload["heldout_split_rms"][1] > clean.payload["heldout_split_rms"][1] + 1.0
     assert moved.heldout_rms == pytest.approx(np.mean(moved.payload["heldout_split_rms"]))
     # residuals.png's channels: each held-out part from its own split's prediction, the rest from

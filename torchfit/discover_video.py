@@ -479,7 +479,7 @@ class VideoProblem:
             predicted backward from the rest (the flight's start from its later frames); each
             fit's ``heldout_rms`` is then the mean of the two held-out parts' RMS (the last
             part's forecast and the first part's backcast), ``heldout_deviance`` their sum
-            (``heldout_params`` stay the forecast's fit's, the first split's). One
+            (``heldout_params`` hold both fits', the forecast's first). One
             split judges a candidate by one extrapolation: a drag fitted without the flight's
             end read 1.5-2.1 times the truth and overshot it (experiments/discover/HISTORY.md,
             twenty-seventh session). False: the last part alone (the default).
@@ -1068,8 +1068,9 @@ class VideoProblem:
                         parts=per_frame, wald=std[2],
                         heldout_deviance=None if held_terms is None else sum(sum(t) for t in held_terms),
                         heldout_logdet=None if held_terms is None else sum(t[1] for t in held_terms),
-                        heldout_params={name: {p: torch.as_tensor(v).tolist() for p, v in values.items()}
-                                        for name, values in held_models[0].values.items()})
+                        heldout_params=[{name: {p: torch.as_tensor(v).tolist() for p, v in values.items()}
+                                         for name, values in held_model.values.items()}
+                                        for held_model in held_models])
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
         """The start for a refit that adds the effects ``new`` to ``model``.
