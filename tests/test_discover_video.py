@@ -173,7 +173,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
 
     small = SMALL
     cfg = _quick_discover(f"data.truth={small / 'truth.json'}", "params.edge_px=0.05", "params.heldout_margin=6",
-                          "params.backcast=null", overlay=True)
+                          overlay=True)
     summary = run(cfg, tmp_path)
     content = json.loads((tmp_path / "discover.json").read_text())
     assert content["verdict"] == summary["verdict"] and isinstance(content["verdict"], list)
@@ -193,7 +193,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     assert np.isfinite(base["heldout_deviance"]) and base["heldout_deviance"] > base["heldout_logdet"] > 0
     assert content["settings"]["heldout_margin"] == 6 and tried["heldout_deviance_rise"] is not None
     assert len(base["frame_chi2"]) == len(content["criterion_frames"]) == len(tried["unit_delta_chi2"]) > 8
-    # backcast null, the path's default: on the exposure path the last and the first quarter are
+    # params.backcast null, the default: on the exposure path the last and the first quarter are
     # held out, and the model's RMS is their mean
     assert content["backcast"] is True and len(base["heldout_split_rms"]) == 2
     assert base["heldout_rms"] == pytest.approx(np.mean(base["heldout_split_rms"]))
@@ -987,7 +987,7 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     run(cfg, tmp_path / "masks")
     content = json.loads((tmp_path / "masks" / "discover.json").read_text())
     assert content["exposure"] is None and content["exposure_fitted"] is None and content["robust"] is None
-    assert content["backcast"] is False  # the last quarter alone (the default, and null's on the masks)
+    assert content["backcast"] is False  # the default (null) holds out the last quarter alone on the masks
 
 
 def test_cli_exposure_with_lens_distortion_models_the_blur_on_the_undistorted_coverage(tmp_path):

@@ -14,9 +14,9 @@ freedom when the noise floors are right in that candidate's direction).
 
     python experiments/discover/coefficients.py SUFFIX [--fresh K ...] [--each] [--unselected]
 
-``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>`` ('' for the default path,
-``_albedo1_exposure_fitted_heldout6`` for the exposure path's complete runs); the six sets unless
-``--fresh`` names others (0 the first); ``--each`` lists every recording.
+``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>``
+(``_albedo1_exposure0.5_taps0_fitted_huber2_backcast`` for the default path, '' for the masks); the
+six sets unless ``--fresh`` names others (0 the first); ``--each`` lists every recording.
 """
 
 from __future__ import annotations
@@ -92,7 +92,8 @@ def summary(rows: list[tuple[str, str, float, float, float]]) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("suffix", help="results folder suffix ('' for the default path)")
+    ap.add_argument("suffix", help="results folder suffix (_albedo1_exposure0.5_taps0_fitted_huber2_backcast for the default "
+                                   "path, '' for the masks)")
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K", help="these sets instead of the six (0 the first)")
     ap.add_argument("--each", action="store_true", help="list every recording's ratio and z")
     ap.add_argument("--unselected", action="store_true",
