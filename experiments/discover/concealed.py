@@ -1,7 +1,9 @@
 """Discover on the concealed-effect recordings: the verdict table of experiments/discover/README.md.
 
     MUJOCO_GL=osmesa python experiments/discover/make_concealed.py   # once (~8 min), git-ignored
-    python experiments/discover/concealed.py [names...]              # ~2-6 min per recording
+    python experiments/discover/concealed.py [names...]              # ~2-6 min per recording, on the masks
+    python experiments/discover/concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5 \
+        --exposure-taps 0 --fit-exposure --robust 2 --backcast [names...]  # as the CLI does by default
     python experiments/discover/concealed.py --table                 # the table from the outputs
     python experiments/discover/concealed.py --true-masks [names...] # MuJoCo's true masks instead
     python experiments/discover/concealed.py --shipped [names...]    # the shipped recordings (hide nothing)
