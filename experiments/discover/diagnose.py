@@ -7,9 +7,9 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py jacobian SET NAME          # the Jacobian against the earlier ways of computing it, ~3 min
     python experiments/discover/diagnose.py coverage SET NAME...       # channels from the soft coverage vs the mask, ~20 s each
     python experiments/discover/diagnose.py heldout SET NAME EFFECT    # is the held-out fit where its frames put it? ~9 min
-    python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT [robust=K]  # the held-out prediction per channel, ~2 min
-    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F] [robust=K] [SETTING=V...]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
-    python experiments/discover/diagnose.py heldout-swap SET NAME EFFECT  # true masks on the held-out or train frames, ~6 min
+    python experiments/discover/diagnose.py heldout-channels SET NAME EFFECT [robust=K] [backcast=true] [masks=true]  # the held-out prediction per channel (masks=true: the engine's), ~2 min
+    python experiments/discover/diagnose.py heldout-blur SET NAME EFFECT [exposure=F] [robust=K] [backcast=true] [SETTING=V...]  # the same with the exposure fitted from 0.5 (a camera's) or held at F, ~3 min
+    python experiments/discover/diagnose.py heldout-swap SET NAME EFFECT [backcast=true]  # true masks on the held-out (backcast=true: the first quarter) or train frames, ~6 min
     python experiments/discover/diagnose.py chroma W...                # segmentation error at chroma weights W, all 54, ~7 s each
     python experiments/discover/diagnose.py sets SET...                # segmentation error per set, default settings, ~7 s each
     python experiments/discover/diagnose.py lens-masks DIR NAME...     # true masks against the mesh projected through the lens, ~5 s each
@@ -67,9 +67,10 @@ from torchfit.video import SegmentationSettings, mask_velocity
 HERE = Path(__file__).resolve().parent
 
 
-def _video(folder: Path, **settings) -> dv.VideoProblem:
+def _video(folder: Path, true_masks: bool = False, **settings) -> dv.VideoProblem:
+    """The recording's VideoProblem on its segmented masks (``true_masks``: the engine's)."""
     _, shape, camera = recording_parts(folder)
-    _, problem, _ = load_problem(folder, shape, camera, False)
+    _, problem, _ = load_problem(folder, shape, camera, true_masks)
     return dv.VideoProblem(problem, **settings)
 
 
@@ -256,18 +257,24 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
 
 
 def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_exposure: float | None = None,
-                     settings: SegmentationSettings | None = None, robust: float | None = None) -> dict:
+                     settings: SegmentationSettings | None = None, robust: float | None = None,
+                     backcast: bool = False, true_masks: bool = False) -> dict:
     """Which channel turns a held-out test: discover's baseline and its refit with ``effect``,
     each with its nuisances (the edge bias's two terms, and with ``blurred`` the exposure) and
-    effect value fitted on all frames and on the train frames, and its held-out prediction per
-    channel in noise floors (RMS and mean over the held-out frames). ``blurred`` (command
-    ``heldout-blur``): the coverage against an exposure fitted from 0.5 as a camera's, with the
-    albedo pass, as ``concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5
+    effect value fitted on all frames and, per held-out split (``splits``: the end; with
+    ``backcast`` the start as well), on that split's train frames, with its held-out prediction
+    per channel in noise floors (RMS and mean over the split's held-out frames). ``blurred``
+    (command ``heldout-blur``): the coverage against an exposure fitted from 0.5 as a camera's,
+    with the albedo pass, as ``concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5
     --exposure-taps 0 --fit-exposure``; with ``held_exposure`` (``heldout-blur ... exposure=F``) the
     exposure held at F instead, in every fit and held-out fit; ``settings`` (``SETTING=V``, e.g.
     ``coverage_band=motion coverage_clip=false``) the blurred path's segmentation, its albedo pass
     kept unless one of them sets ``albedo_passes``; ``robust`` (``robust=K``): Huber's loss at K noise
-    floors in every fit, as the default (``data.exposure=auto``) has it at 2."""
+    floors in every fit, as the default (``data.exposure=auto``) has it at 2; ``backcast``
+    (``backcast=true``): the first quarter held out as well, as the default has it where the blur
+    is modelled; ``true_masks`` (``heldout-channels ... masks=true``): the engine's exact masks at
+    the frame's instant in place of the segmentation, at their own noise floor's edge term
+    (0.01 px), as ``concealed.py --true-masks --edge-px 0.01``."""
     from torchfit.residuals import CHANNELS
 
     searched = None
@@ -275,51 +282,61 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
         settings = settings or SegmentationSettings(albedo_passes=1)
         _, _, problem, coverage, searched = _searched_coverage(folder, settings)
         video = dv.VideoProblem(problem, exposure=Exposure(0.5 if held_exposure is None else held_exposure, 0),
-                                fit_exposure=held_exposure is None, coverage=coverage, robust=robust)
+                                fit_exposure=held_exposure is None, coverage=coverage, robust=robust,
+                                backcast=backcast)
     else:
-        video = _video(folder, robust=robust)
+        video = (_video(folder, True, robust=robust, backcast=backcast, edge_px=0.01) if true_masks
+                 else _video(folder, robust=robust, backcast=backcast))
     base = video.fit((), None, searched)
+
+    def value(model) -> dict:
+        return {p: float(torch.as_tensor(v).reshape(-1)[0]) for p, v in model.values.get(effect, {}).items()}
+
     out = {}
     for label, fit in (("baseline", base), (effect, video.fit((effect,), base))):
-        held = fit.payload["held_channels"][0]  # the forecast's (the last quarter's)
         out[label] = {"heldout_noise_floors": fit.heldout_rms,
                       "nuisance_names": list(video.nuisance_names),
                       "edge_all_frames": [float(x) for x in fit.payload["model"].nuisances],
-                      "edge_train_frames": [float(x) for x in fit.payload["held_model"].nuisances],
-                      "value_all_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
-                                           for p, v in fit.payload["model"].values.get(effect, {}).items()},
-                      "value_train_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
-                                             for p, v in fit.payload["held_model"].values.get(effect, {}).items()},
-                      "channels": {c: {"rms": float(np.sqrt(np.nanmean((held[c][video.held] / video.noise[c]) ** 2))),
-                                       "mean": float(np.nanmean(held[c][video.held] / video.noise[c]))}
-                                   for c in CHANNELS}}
+                      "value_all_frames": value(fit.payload["model"]),
+                      "splits": [{"held_out": where, "heldout_noise_floors": rms,
+                                  "edge_train_frames": [float(x) for x in model.nuisances],
+                                  "value_train_frames": value(model),
+                                  "channels": {c: {"rms": float(np.sqrt(np.nanmean((chans[c][held] / video.noise[c]) ** 2))),
+                                                   "mean": float(np.nanmean(chans[c][held] / video.noise[c]))}
+                                               for c in CHANNELS}}
+                                 for where, rms, model, chans, (_, held)
+                                 in zip(("end", "start"), fit.payload["heldout_split_rms"], fit.payload["held_models"],
+                                        fit.payload["held_channels"], video.splits)]}
     return out
 
 
-def heldout_swap(folder: Path, effect: str) -> dict:
+def heldout_swap(folder: Path, effect: str, backcast: bool = False) -> dict:
     """Whose frames turn a held-out test: the segmented video with the engine's true masks put in
     place of the segmentation on no frame, on the held-out frames, on the train frames, or on
     all; each time discover's baseline and its refit with ``effect`` (noise floors re-estimated
     from each mix, as discover does): held-out RMS in noise floors, the gain, the effect's value
-    fitted on the train frames, and the edge bias there."""
+    fitted on the train frames, and the edge bias there. The held-out part is the last quarter;
+    with ``backcast`` (``heldout-swap ... backcast=true``) the first, the backcast's split, whose
+    figures are given (the fits hold out both, as the default does where the blur is modelled)."""
     _, shape, camera = recording_parts(folder)
     observation, problem, span = load_problem(folder, shape, camera, False)
-    held = span[dv.VideoProblem(problem).held]  # the held-out frames, video frame numbers
+    split = 1 if backcast else 0
+    held = span[dv.VideoProblem(problem, backcast=backcast).splits[split][1]]  # video frame numbers
     true = np.load(folder / "masks.npz")["masks"].astype(bool)
     out = {}
     for label, frames in (("segmented", []), ("true on held-out frames", held),
                           ("true on train frames", np.setdiff1d(span, held)), ("true", span)):
         masks = observation.masks.copy()
         masks[frames] = true[frames]
-        video = dv.VideoProblem(problem_of(with_masks(observation, masks), shape, camera)[0])
+        video = dv.VideoProblem(problem_of(with_masks(observation, masks), shape, camera)[0], backcast=backcast)
         base = video.fit((), None)
         refit = video.fit((effect,), base)
-        out[label] = {"heldout_before": base.heldout_rms, "heldout_after": refit.heldout_rms,
-                      "gain": 1.0 - refit.heldout_rms / base.heldout_rms,
+        before, after = (fit.payload["heldout_split_rms"][split] for fit in (base, refit))
+        out[label] = {"heldout_before": before, "heldout_after": after, "gain": 1.0 - after / before,
                       "train_value": {p: float(torch.as_tensor(v).reshape(-1)[0])
-                                      for p, v in refit.payload["held_model"].values[effect].items()},
-                      "train_edge_px": [float(x) for x in refit.payload["held_model"].nuisances],
-                      "baseline_train_edge_px": [float(x) for x in base.payload["held_model"].nuisances]}
+                                      for p, v in refit.payload["held_models"][split].values[effect].items()},
+                      "train_edge_px": [float(x) for x in refit.payload["held_models"][split].nuisances],
+                      "baseline_train_edge_px": [float(x) for x in base.payload["held_models"][split].nuisances]}
         print(label, json.dumps(out[label]), flush=True)
     return out
 
@@ -1419,7 +1436,16 @@ def main(argv: list[str]) -> None:
     held = [a for a in argv[2:] if a.startswith("exposure=")] if command == "heldout-blur" else []
     # heldout-channels, heldout-blur: robust=K, Huber's loss at K noise floors
     robust = [a for a in argv[2:] if a.startswith("robust=")] if command in ("heldout-channels", "heldout-blur") else []
-    argv = [a for a in argv if a not in fractions + parts + held + robust]
+    # heldout-channels, heldout-blur, heldout-swap: backcast=true, the first quarter held out as well
+    backcast = ([a for a in argv[2:] if a.startswith("backcast=")]
+                if command in ("heldout-channels", "heldout-blur", "heldout-swap") else [])
+    if backcast and backcast[-1] not in ("backcast=true", "backcast=false"):
+        sys.exit(f"{command}: backcast= takes true or false, got {backcast[-1]}")
+    # heldout-channels: masks=true, the engine's exact masks in place of the segmentation
+    exact = [a for a in argv[2:] if a.startswith("masks=")] if command == "heldout-channels" else []
+    if exact and exact[-1] not in ("masks=true", "masks=false"):
+        sys.exit(f"{command}: masks= takes true or false, got {exact[-1]}")
+    argv = [a for a in argv if a not in fractions + parts + held + robust + backcast + exact]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
                           "shape-frames", "error-speed", "regions", "lens-residual")
@@ -1447,6 +1473,10 @@ def main(argv: list[str]) -> None:
         label += "_" + held[-1].replace("=", "")
     if robust:
         label += "_" + robust[-1].replace("=", "")
+    if backcast == ["backcast=true"]:
+        label += "_backcast"
+    if exact == ["masks=true"]:
+        label += "_true_masks"
     for name in names:
         if not (folder / name / "truth.json").exists():
             sys.exit(f"no concealed recording {folder / name}: make it with make_concealed.py")
@@ -1459,6 +1489,10 @@ def main(argv: list[str]) -> None:
             extra["held_exposure"] = float(held[-1].split("=", 1)[1])
         if robust:
             extra["robust"] = float(robust[-1].split("=", 1)[1])
+        if backcast:
+            extra["backcast"] = backcast[-1] == "backcast=true"
+        if exact:
+            extra["true_masks"] = exact[-1] == "masks=true"
         result = commands[command](folder / name, *([] if several else [a for a in argv[3:] if "=" not in a]), **extra)
         print(f"== {command} {argv[1]}/{name}")
         print(json.dumps(result, indent=1, default=float))
