@@ -361,7 +361,8 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                 "heldout_gain": gain, "heldout_deviance_before": base.heldout_deviance,
                 "heldout_deviance_after": fit.heldout_deviance, "heldout_deviance_rise": deviance,
                 "heldout_logdet_before": base.heldout_logdet, "heldout_logdet_after": fit.heldout_logdet,
-                "heldout_params": [split.get(name) for split in fit.heldout_params or []], "params": fit.params,
+                "heldout_params": ([split.get(name) for split in fit.heldout_params] if fit.heldout_params
+                                   else None), "params": fit.params,
                 "unphysical": outside, "wald_chi2": wald, "wald_delta_bic": wald_bic,
                 **spread,
                 "fails": fails, "passes": not fails,
