@@ -285,8 +285,8 @@ def heldout_channels(folder: Path, effect: str, blurred: bool = False, held_expo
                                 fit_exposure=held_exposure is None, coverage=coverage, robust=robust,
                                 backcast=backcast)
     else:
-        video = (_video(folder, True, robust=robust, backcast=backcast, edge_px=0.01) if true_masks
-                 else _video(folder, robust=robust, backcast=backcast))
+        exact = {"edge_px": 0.01} if true_masks else {}  # exact masks: their own noise floor's edge term
+        video = _video(folder, true_masks, robust=robust, backcast=backcast, **exact)
     base = video.fit((), None, searched)
 
     def value(model) -> dict:
