@@ -443,6 +443,43 @@ def test_silhouette_moments_of_parts_on_shared_lines():
             np.testing.assert_allclose(centre[n].numpy(), ref_centre, atol=1e-8, err_msg=f"{label} {n}")
 
 
+
+def test_silhouette_moments_of_three_parts():
+    """Three overlapping convex parts (each edge cut by two others): the union's moments as
+    scipy's polygons give them by inclusion-exclusion, in 20 poses."""
+    import trimesh
+
+    from torchfit.render import silhouette_moments
+    from torchfit.shape import make_shape
+
+    def box(extents, centre):
+        mesh = trimesh.creation.box(extents=extents)
+        mesh.apply_translation(centre)
+        return mesh
+
+    parts = [box((0.12, 0.03, 0.03), (0, 0, 0)), box((0.03, 0.12, 0.03), (0.02, 0.01, 0)),
+             box((0.05, 0.05, 0.05), (-0.03, 0.02, 0.01))]
+    shape = make_shape(trimesh.util.concatenate(parts).convex_hull, name="three", density=500.0, render_meshes=parts)
+    camera = Camera(800.0, 800.0, 320.0, 240.0, 640, 480)
+    gen = torch.Generator().manual_seed(5)
+    rot = quat_to_matrix(axis_angle_to_quat(2 * torch.randn(20, 3, generator=gen, dtype=F64)))
+    trans = torch.cat((0.05 * torch.randn(20, 2, generator=gen, dtype=F64),
+                       0.6 + torch.rand(20, 1, generator=gen, dtype=F64)), -1)
+    area, centre, cov = silhouette_moments(RenderMesh.from_shape(shape, F64), camera, rot, trans)
+    for n in range(20):
+        hulls = [project(camera, torch.as_tensor(p.vertices) @ rot[n].T + trans[n])[0].numpy() for p in shape.parts]
+        raw = sum(_polygon_moments(h) for h in hulls)
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            overlap = _intersection_points(hulls[i], hulls[j])
+            raw = raw - (_polygon_moments(overlap) if overlap is not None else 0.0)
+        pair = _intersection_points(hulls[0], hulls[1])
+        triple = None if pair is None else _intersection_points(pair, hulls[2])
+        raw = raw + (_polygon_moments(triple) if triple is not None else 0.0)
+        ref_area, ref_centre, ref_cov = _central(raw)
+        assert float(area[n]) == pytest.approx(ref_area, rel=1e-9)
+        np.testing.assert_allclose(centre[n].numpy(), ref_centre, atol=1e-8)
+        np.testing.assert_allclose(cov[n].numpy(), ref_cov, atol=1e-8 * np.abs(ref_cov).max())
+
 def test_silhouette_moments_gradcheck_float64():
     """Moments against the rotation (axis-angle) and translation of a T-handle whose two parts'
     outlines cross: the cut points move with both parts."""

@@ -519,7 +519,7 @@ def silhouette_moments(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Ten
 
     Args:
         mesh, camera, rot (N, 3, 3), trans (N, 3), distort, shutter: as :func:`contour_lines`.
-        budget: elements of the per-chunk (n, P, K, P, K) work set; bounds memory.
+        budget: elements of the per-chunk (n, P, K, P - 1, K) work set; bounds memory.
 
     Returns:
         area: (N,) pixels² (0 for a shape behind the camera).
@@ -533,7 +533,7 @@ def silhouette_moments(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Ten
     lines = contour.lines
     lines = torch.cat((lines[..., :2], (lines[..., 2] + (lines[..., :2] * origin[:, None, None]).sum(-1)).unsqueeze(-1)), -1)
     parts, per_part = lines.shape[1:3]
-    step = max(1, budget // max(parts * per_part * parts * per_part * 2, 1))
+    step = max(1, budget // max(parts * per_part * max(parts - 1, 1) * per_part * 2, 1))
     raw = torch.cat([_outside_moments(edges[i:i + step], lines[i:i + step], contour.drawn[i:i + step])
                      for i in range(0, len(edges), step)]) if len(edges) else edges.new_zeros(0, 6)
     area, centroid, cov = central_moments(raw)
@@ -547,15 +547,18 @@ def _outside_moments(edges: Tensor, lines: Tensor, drawn: Tensor) -> Tensor:
     parts = lines.shape[1]
     start, end = edges[..., 0, :], edges[..., 1, :]  # (N, P, K, 2)
     if parts > 1:
-        # f(t) = n_l . (start + t d) + c_l for every edge (p, k) and every other part's line (q, l)
+        # f(t) = n_l . (start + t d) + c_l for every edge (p, k) and every line (q, l) of each of
+        # the Q = P - 1 other parts
         d = end - start
-        normal = lines[..., :2]  # (N, Q, L, 2)
-        alpha = torch.einsum("npkx,nqlx->npkql", start, normal) + lines[:, None, None, :, :, 2]
-        beta = torch.einsum("npkx,nqlx->npkql", d, normal)
-        # on a shared line: the lower part keeps an edge walked the same way, a seam is dropped
         index = torch.arange(parts, device=lines.device)
-        lower = (index[None, :] < index[:, None])[None, :, None, :, None]  # (1, P, 1, Q, 1): q < p
-        same_way = torch.einsum("npkx,nqlx->npkql", _perp(d), normal) > 0
+        others = torch.stack([torch.cat((index[:p], index[p + 1:])) for p in range(parts)])  # (P, Q)
+        other = lines[:, others]  # (N, P, Q, L, 3)
+        normal = other[..., :2]
+        alpha = torch.einsum("npkx,npqlx->npkql", start, normal) + other[..., 2].unsqueeze(2)
+        beta = torch.einsum("npkx,npqlx->npkql", d, normal)
+        # on a shared line: the lower part keeps an edge walked the same way, a seam is dropped
+        lower = (others < index[:, None])[None, :, None, :, None]  # (1, P, 1, Q, 1): q < p
+        same_way = torch.einsum("npkx,npqlx->npkql", _perp(d), normal) > 0
         resolution = torch.finfo(lines.dtype).eps
         eps = 1e3 * resolution * (1.0 + start.detach().abs().amax(dim=(1, 2, 3)))[:, None, None, None, None]
         tol = torch.where(lower | ~same_way, eps, -eps)
@@ -567,7 +570,6 @@ def _outside_moments(edges: Tensor, lines: Tensor, drawn: Tensor) -> Tensor:
         lo = torch.where(~tiny & (beta < 0), bound, -inf).amax(-1).clamp(min=0.0)  # (N, P, K, Q)
         hi = torch.where(~tiny & (beta > 0), bound, inf).amin(-1).clamp(max=1.0)
         feasible = ~(tiny & (slack < 0)).any(-1) & (lo < hi)
-        feasible = feasible & ~torch.eye(parts, dtype=torch.bool, device=lines.device)[None, :, None, :]
         one = torch.ones_like(lo)
         lo, hi = torch.where(feasible, lo, one), torch.where(feasible, hi, one)
         # sweep each edge's [0, 1] over the other parts' intervals: pieces where none covers it
