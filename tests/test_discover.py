@@ -83,6 +83,41 @@ def test_lookalikes_are_reported_not_named():
     assert selection.verdict == [] and sorted(selection.steps[0].indistinguishable) == ["linear_drag", "quadratic_drag"]
 
 
+
+def test_a_round_is_fitted_at_once_where_the_problem_can():
+    """select_effects hands a problem with fit_many each round's new models in one call (their
+    fits side by side), and the selection is the one fit alone gives."""
+    from torchfit.discover import ModelFit
+
+    class Rounds:
+        noise_var = 1.0
+        candidates = ("quadratic_drag", "magnus", "time_scale")
+
+        def __init__(self):
+            self.calls = []
+
+        def fit(self, effects, warm):
+            self.calls.append(("fit", tuple(effects)))
+            rss = 1000.0 - 400.0 * ("quadratic_drag" in effects) - 40.0 * ("magnus" in effects)
+            return ModelFit(tuple(effects), rss, 500, 6 + len(effects), {}, rss ** 0.5, (rss / 500) ** 0.5)
+
+    class AtOnce(Rounds):
+        def fit_many(self, effect_sets, warm):
+            self.calls.append(("fit_many", tuple(effect_sets)))
+            return [Rounds.fit(self, effects, warm) for effects in effect_sets]
+
+    alone, at_once = Rounds(), AtOnce()
+    one, other = select_effects(alone, SelectionSettings()), select_effects(at_once, SelectionSettings())
+    assert one.verdict == other.verdict == ["quadratic_drag", "magnus"]
+    assert [s.scores for s in one.steps] == [s.scores for s in other.steps]
+    rounds = [call for call in at_once.calls if call[0] == "fit_many"]
+    assert rounds == [("fit_many", (("quadratic_drag",), ("magnus",), ("time_scale",))),
+                      ("fit_many", (("quadratic_drag", "magnus"), ("quadratic_drag", "time_scale"))),
+                      ("fit_many", (("quadratic_drag", "magnus", "time_scale"),))]
+    # no model fitted twice, and nothing but the baseline fitted alone
+    assert [call for call in at_once.calls if call[0] == "fit"] == [("fit", ())] + [
+        ("fit", effects) for _, sets in rounds for effects in sets]
+
 def _compose(overrides):
     with initialize_config_module(config_module="torchfit.configs", version_base="1.3"):
         return compose(config_name="config", overrides=overrides)

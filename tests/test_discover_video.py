@@ -567,7 +567,10 @@ def test_backcast_holds_out_the_first_frames_as_well_and_scores_the_mean():
     forecast_fit = [fit.payload["held_models"][0].values["time_scale"]["time_scale"] for fit in (clean, moved)]
     assert float(forecast_fit[0]) != float(forecast_fit[1])  # the forecast's fit sees the first frames
     backcast_fit = [float(fit.payload["held_models"][1].values["time_scale"]["time_scale"]) for fit in (clean, moved)]
-    assert backcast_fit[0] == backcast_fit[1]  # the backcast's fit does not
+    # the backcast's fit does not: the same to rounding (it runs in one batch with the other
+    # fits, whose paths the move changes; measured: 2e-9 relative)
+    assert backcast_fit[0] == pytest.approx(backcast_fit[1], rel=1e-7)
+    assert abs(float(forecast_fit[0]) - float(forecast_fit[1])) > 1e-4 * abs(float(forecast_fit[0]))
     # the report's values "without the held-out end / start" are these two fits'
     assert [split["time_scale"]["time_scale"] for split in moved.heldout_params] == pytest.approx(
         [float(forecast_fit[1]), backcast_fit[1]])
@@ -802,6 +805,48 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
     # drag and offset: 9 starts, a clock's 3, a lens's 5, each batch sharing every flight
     assert batched_flights * 2 < len(flights)
 
+
+
+def test_fits_with_different_effects_and_frames_run_side_by_side():
+    """A round's refits (VideoProblem.fit_many) run in lockstep though they hold different effects
+    and fit different frames (all frames, a split's train frames): each ends where it ends alone,
+    and the round shares its flights."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("quadratic_drag", {"drag_coefficient": 0.8})
+    video = dv.VideoProblem(problem, backcast=True)
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(model)
+    used = video.problem.used.cpu().numpy().astype(bool)
+    train = video.splits[1][0]  # the backcast's: all but the first quarter
+    starts = [video._extend(model, ("quadratic_drag",)), video._extend(model, ("time_scale",)),
+              video._extend(model, ("lens_distortion",)), model]
+    starts[0].values["quadratic_drag"]["drag_coefficient"] = torch.tensor(0.3, dtype=F64)
+    masks = [used, train, used, train]
+    flights = []
+    render = video._fitted_moments
+
+    def counted(cands, effects_, fraction=None):
+        flights.append(len(cands))
+        return render(cands, effects_, fraction)
+
+    video._fitted_moments = counted
+    together = video._lm_many(starts, masks, 4)
+    batched_flights = len(flights)
+    flights.clear()
+    alone = [video._lm(start, mask, 4) for start, mask in zip(starts, masks)]
+    for (model_a, resid_a, jac_a), (model_b, resid_b, jac_b), mask in zip(together, alone, masks):
+        assert len(resid_a) == len(resid_b) == video._vector(model_b.cands, video.effects(model_b.values),
+                                                             model_b.nuisances, torch.as_tensor(mask)).shape[1]
+        assert float((resid_a - resid_b).abs().max()) < 1e-7
+        assert float((jac_a - jac_b).abs().max()) < 1e-6
+        assert set(model_a.values) == set(model_b.values)
+        for name, params in model_b.values.items():
+            for pname, value in params.items():
+                assert float((model_a.values[name][pname] - value).abs().max()) < 1e-5 * dv.EFFECT_SCALES[pname]
+    # the drag moved from its start, and the train frames' fit differs from the all-frames one
+    assert float(together[0][0].values["quadratic_drag"]["drag_coefficient"]) != 0.3
+    assert batched_flights * 2 < len(flights)
 
 def _ellipse_covariances(angles: np.ndarray, along: np.ndarray, across: np.ndarray) -> np.ndarray:
     """(T, 2, 2) covariances with variance ``along`` in direction ``angles`` and ``across`` a quarter turn off."""

@@ -175,7 +175,8 @@ class SelectionProblem(Protocol):
     def fit(self, effects: tuple[str, ...], warm: ModelFit | None) -> ModelFit:
         """Fit with these effects on all data and on the non-held-out part."""
 
-    # optional: ``applicable(effects) -> bool`` (False skips a combination the data cannot see)
+    # optional: ``applicable(effects) -> bool`` (False skips a combination the data cannot see);
+    # ``fit_many(effect_sets, warm) -> list[ModelFit]``, a round's fits at once (as ``fit`` of each)
 
 
 @dataclass
@@ -322,10 +323,12 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
     while len(verdict) < settings.max_effects:
         step = Step(base=base.effects)
         chi_base, bic_base = _criterion(base, problem.noise_var)
-        for name in problem.candidates:
-            effects = _with(base.effects, name)
-            if effects is None or not getattr(problem, "applicable", lambda e: True)(effects):
-                continue
+        tried = [(name, effects) for name in problem.candidates for effects in [_with(base.effects, name)]
+                 if effects is not None and getattr(problem, "applicable", lambda e: True)(effects)]
+        fresh = list(dict.fromkeys(effects for _, effects in tried if effects not in fits))
+        if fresh and hasattr(problem, "fit_many"):  # the round's fits side by side
+            fits.update(zip(fresh, problem.fit_many(fresh, base)))
+        for name, effects in tried:
             fit = fits.get(effects) or problem.fit(effects, base)
             fits[effects] = fit
             chi, bic = _criterion(fit, problem.noise_var)

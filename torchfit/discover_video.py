@@ -402,20 +402,24 @@ class _Run:
     cost: float
     damping: float = 1e-3
     decrease: float = 0.0
+    mask: Tensor | None = None  # (T,) the frames it fits
 
 
 def _stacked_values(parts: Sequence[tuple[dict, int]]) -> dict:
     """One batch's effect values from several models' ``(values, rows)``: each parameter, shared
     (its null value's shape) or per row ((rows,) or (rows, 3)), becomes per row and the models'
-    rows are concatenated. The models hold the same effects."""
+    rows are concatenated. The batch holds every effect of any model (in the order they first
+    appear); a model without one takes its null values (``Effect.null_params``: it does nothing
+    there), so models with different effects share one flight and render."""
+    names = list(dict.fromkeys(name for values, _ in parts for name in values))
     out = {}
-    for name, params in parts[0][0].items():
+    for name in names:
         out[name] = {}
-        for pname in params:
-            shared_dim = torch.as_tensor(EFFECTS[name].null_params[pname]).dim()
+        for pname, null in EFFECTS[name].null_params.items():
+            shared_dim = torch.as_tensor(null).dim()
             pieces = []
             for values, rows in parts:
-                value = torch.as_tensor(values[name][pname], dtype=torch.float64)
+                value = torch.as_tensor(values[name][pname] if name in values else null, dtype=torch.float64)
                 pieces.append(value.expand(rows, *value.shape) if value.dim() == shared_dim else value)
             out[name][pname] = torch.cat(pieces)
     return out
@@ -782,13 +786,14 @@ class VideoProblem:
         unmoved render.
         Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the covariance skip them.
         """
-        return self._jacobians([model], mask, step)[0]
+        return self._jacobians([model], [mask], step)[0]
 
-    def _jacobians(self, models: Sequence[_Model], mask: Tensor,
+    def _jacobians(self, models: Sequence[_Model], masks: Sequence[Tensor],
                    step: float = 1e-3) -> list[tuple[Tensor, Tensor]]:
-        """:meth:`_jacobian` of several models whose batched rows share one flight and render."""
-        plans, blocks = [], []
-        for model in models:
+        """:meth:`_jacobian` of several models, each on its own frames (``masks``, one (T,) per
+        model), whose batched rows share one flight and render."""
+        plans, blocks, block_masks = [], [], []
+        for model, mask in zip(models, masks):
             free = torch.nonzero(~self._frozen(model)[:14]).flatten()
             n_extra = self._extra_count(model)  # the effects' parameters, then the nuisances
             values = self._stepped_values(model, 1 + len(free), step)
@@ -797,6 +802,7 @@ class VideoProblem:
             zero_extra = torch.zeros(n_extra, dtype=torch.float64)
             cands, _, nuisances = self._build(model, state.to(self.problem.masks.device), zero_extra)
             blocks.append((cands, values, nuisances))
+            block_masks.append(mask)
             exposure_step = None
             if self._fraction(model.nuisances) is not None:  # a fitted exposure's column renders once more
                 exposure_step = step if self._fraction(model.nuisances) + step * EXPOSURE_SCALE <= 1.0 else -step
@@ -804,11 +810,12 @@ class VideoProblem:
                 shifted[n_extra - len(model.nuisances) + self.nuisance_names.index("exposure")] = exposure_step
                 one, _, moved = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
                 blocks.append((one, model.values, moved))
+                block_masks.append(mask)
             plans.append((free, exposure_step))
         with torch.no_grad():
-            evaluated = iter(self._evaluate(blocks, mask))
+            evaluated = iter(self._evaluate(blocks, block_masks))
             out = []
-            for model, (free, exposure_step) in zip(models, plans):
+            for model, mask, (free, exposure_step) in zip(models, masks, plans):
                 fitted, rows = next(evaluated)
                 exposure_row = None if exposure_step is None else (next(evaluated)[1][0], exposure_step)
                 out.append(self._assemble_jacobian(model, fitted, rows, free, mask, step, exposure_row))
@@ -841,17 +848,19 @@ class VideoProblem:
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
-                  mask: Tensor) -> list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]]:
+                  masks: Sequence[Tensor]) -> list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]]:
         """Several models' rows in one flight and render.
 
         Args:
             blocks: per model, its B_k rows' candidates, effect values ``{name: {param: value}}``
-                (each shared, of its null value's shape, or one per row, (B_k,) or (B_k, 3)) and
-                nuisances (:class:`_Model`'s ``nuisances``).
+                (each shared, of its null value's shape, or one per row, (B_k,) or (B_k, 3); the
+                models may hold different effects, :func:`_stacked_values`) and nuisances
+                (:class:`_Model`'s ``nuisances``).
+            masks: per block, the (T,) frames its vectors hold.
 
         Returns:
-            Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N + Q)
-            vectors (:meth:`_vector`).
+            Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N_k + Q)
+            vectors (:meth:`_vector`, N_k its mask's frames).
         """
         if len(blocks) == 1:
             cands, values, _ = blocks[0]
@@ -864,7 +873,7 @@ class VideoProblem:
                                   for block in blocks])
         fitted = self._fitted_moments(cands, self.effects(values), fraction)
         out, start = [], 0
-        for block_cands, _, nuisances in blocks:
+        for (block_cands, _, nuisances), mask in zip(blocks, masks):
             part = tuple(m[start:start + len(block_cands)] for m in fitted)
             out.append((part, self._vector_of(part, nuisances, mask)))
             start += len(block_cands)
@@ -905,15 +914,21 @@ class VideoProblem:
         accepted one lowers it by less than ``tolerance`` of itself."""
         return self._lm_many([model], mask, iterations, tolerance)[0]
 
-    def _lm_many(self, models: Sequence[_Model], mask: np.ndarray, iterations: int,
+    def _lm_many(self, models: Sequence[_Model], masks: np.ndarray | Sequence[np.ndarray], iterations: int,
                  tolerance: float = 1e-5) -> list[tuple[_Model, Tensor, Tensor]]:
         """:meth:`_lm` from each of several starts, in lockstep: every iteration's Jacobians, and
         every round of trial steps, of the starts still running share one flight and render (the
-        screening's starts, :meth:`_screen`; a flight of a few rows costs its integrator's calls,
-        not its size). Each start keeps its own damping and stopping, as alone."""
-        mask_t = torch.as_tensor(mask, device=self.problem.masks.device) & self.problem.used
-        runs = [_Run(model, resid, jac, self._cost(resid))
-                for model, (resid, jac) in zip(models, self._jacobians(models, mask_t))]
+        screening's starts, :meth:`_screen_many`, and the refits of :meth:`fit_many`; a flight of a
+        few rows costs its integrator's calls, not its size). Each start keeps its own damping and
+        stopping, as alone. ``masks``: the (T,) frames every start fits, or one per start (a
+        held-out fit's train frames beside an all-frames fit); the starts may hold different
+        effects."""
+        if isinstance(masks, np.ndarray) and masks.ndim == 1:
+            masks = [masks] * len(models)
+        used = self.problem.used
+        frames = [torch.as_tensor(mask, device=used.device) & used for mask in masks]
+        runs = [_Run(model, resid, jac, self._cost(resid), mask=mask)
+                for model, mask, (resid, jac) in zip(models, frames, self._jacobians(models, frames))]
         running = list(runs)
         for _ in range(iterations):
             systems = {}
@@ -940,7 +955,7 @@ class VideoProblem:
                     trials.append((run, cands, {e.name: e.values() for e in effects}, nuisances))
                 if trials:
                     with torch.no_grad():
-                        evaluated = self._evaluate([trial[1:] for trial in trials], mask_t)
+                        evaluated = self._evaluate([trial[1:] for trial in trials], [trial[0].mask for trial in trials])
                     for (run, cands, values, nuisances), (_, vector) in zip(trials, evaluated):
                         trial_cost = self._cost(vector[0].double())
                         if trial_cost < run.cost:
@@ -955,7 +970,8 @@ class VideoProblem:
                 searching = [run for run in searching if run not in accepted]
                 if not searching:
                     break
-            for run, (resid, jac) in zip(accepted, self._jacobians([run.model for run in accepted], mask_t)
+            for run, (resid, jac) in zip(accepted, self._jacobians([run.model for run in accepted],
+                                                                   [run.mask for run in accepted])
                                          if accepted else []):
                 run.resid, run.jac = resid, jac
             running = [run for run in accepted if run.decrease >= tolerance]
@@ -1073,29 +1089,39 @@ class VideoProblem:
                                         for held_model in held_models])
 
     def _screen(self, model: _Model, new: tuple[str, ...], mask: np.ndarray) -> tuple[_Model, _Model]:
-        """The start for a refit that adds the effects ``new`` to ``model``.
+        """The start for a refit that adds the effects ``new`` to ``model`` on the frames in
+        ``mask`` (:meth:`_screen_many` of one)."""
+        return self._screen_many([(model, new, mask)])[0]
+
+    def _screen_many(self, requests: Sequence[tuple[_Model, tuple[str, ...], np.ndarray]]) -> list[tuple[_Model, _Model]]:
+        """The starts for refits that each add the effects ``new`` to ``model`` on the frames in
+        ``mask``, one per ``(model, new, mask)`` request.
 
         Starts: ``model`` (the new effects at null) and, for each parameter component of ``new``,
         the same moved one ``EFFECT_SCALES`` unit either side. Each runs ``SCREEN_ITERATIONS`` LM
-        iterations on the frames in ``mask``; returns the start with the lowest cost and where
-        its screening ended (the starts run side by side, :meth:`_lm_many`)."""
-        starts = [model]
-        for name in new:
-            for pname, value in model.values[name].items():
-                value = torch.as_tensor(value, dtype=torch.float64)
-                for index in range(value.numel()):
-                    for sign in (1.0, -1.0):
-                        moved = value.clone().reshape(-1)
-                        moved[index] += sign * EFFECT_SCALES.get(pname, 0.1)
-                        values = {n: dict(p) for n, p in model.values.items()}
-                        values[name][pname] = moved.view_as(value)
-                        starts.append(_Model(model.cands, values, model.nuisances))
-        best = None
-        for start, (screened, resid, _) in zip(starts, self._lm_many(starts, mask, SCREEN_ITERATIONS)):
+        iterations on its request's frames; returns, per request, the start with the lowest cost
+        and where its screening ended (every request's starts run side by side, :meth:`_lm_many`)."""
+        starts, owners = [], []
+        for k, (model, new, _) in enumerate(requests):
+            starts.append(model)
+            for name in new:
+                for pname, value in model.values[name].items():
+                    value = torch.as_tensor(value, dtype=torch.float64)
+                    for index in range(value.numel()):
+                        for sign in (1.0, -1.0):
+                            moved = value.clone().reshape(-1)
+                            moved[index] += sign * EFFECT_SCALES.get(pname, 0.1)
+                            values = {n: dict(p) for n, p in model.values.items()}
+                            values[name][pname] = moved.view_as(value)
+                            starts.append(_Model(model.cands, values, model.nuisances))
+            owners.extend([k] * (len(starts) - len(owners)))
+        ended = self._lm_many(starts, [requests[k][2] for k in owners], SCREEN_ITERATIONS)
+        best: list[tuple[float, _Model, _Model] | None] = [None] * len(requests)
+        for k, start, (screened, resid, _) in zip(owners, starts, ended):
             cost = self._cost(resid)
-            if best is None or cost < best[0]:
-                best = (cost, start, screened)
-        return best[1], best[2]
+            if best[k] is None or cost < best[k][0]:
+                best[k] = (cost, start, screened)
+        return [(start, screened) for _, start, screened in best]
 
     @staticmethod
     def _extend(start: _Model, effects: tuple[str, ...]) -> _Model:
@@ -1110,36 +1136,62 @@ class VideoProblem:
         """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction).
 
         The baseline (no ``effects``) starts from ``searched``, torchfit's search's result on this
-        problem, or runs that search when None."""
+        problem, or runs that search when None; a model with effects extends ``warm``
+        (:meth:`fit_many` of one)."""
+        if effects:
+            return self.fit_many([effects], warm)[0]
         clock = time.perf_counter()
         everything = self.problem.used.cpu().numpy().astype(bool)
-        if not effects:
-            result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
-            starts = self.search_starts(result, self.baseline_starts)
-            self._set_noise(starts[0])
-            ended = self._lm_many(starts, everything, self.iterations)
-            model, resid, jac = min(ended, key=lambda run: self._cost(run[1]))
-            if len(ended) > 1:
-                self.say(f"  baseline from {len(ended)} search candidates: chi2 "
-                         + ", ".join(f"{self._cost(run[1]):.1f}" for run in ended))
-            helds = [self._lm(model, train, self.iterations) for train, _ in self.splits]
-        else:
+        result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
+        starts = self.search_starts(result, self.baseline_starts)
+        self._set_noise(starts[0])
+        ended = self._lm_many(starts, everything, self.iterations)
+        model, resid, jac = min(ended, key=lambda run: self._cost(run[1]))
+        if len(ended) > 1:
+            self.say(f"  baseline from {len(ended)} search candidates: chi2 "
+                     + ", ".join(f"{self._cost(run[1]):.1f}" for run in ended))
+        helds = self._lm_many([model] * len(self.splits), [train for train, _ in self.splits], self.iterations)
+        return self._scored((), (model, resid, jac), helds, clock)
+
+    def fit_many(self, effect_sets: Sequence[tuple[str, ...]], warm: ModelFit) -> list[ModelFit]:
+        """:meth:`fit` of several models that each extend ``warm`` (a round of candidates), side by
+        side: every model's fits, on all frames and on each split's train frames, are screened in
+        one batch and refitted in one (:meth:`_screen_many`, :meth:`_lm_many`); each fit ends
+        where it would alone.
+
+        A model starts from ``warm`` with its new effects screened on all frames. Its prediction's
+        fits see no held-out frame: each starts from ``warm``'s fit of the same train frames, the
+        new effects screened again on those frames alone (a start chosen on all frames could stall
+        in another basin than the train frames' best, and did)."""
+        clock = time.perf_counter()
+        everything = self.problem.used.cpu().numpy().astype(bool)
+        requests = []  # per model: all frames, then each split's train frames
+        for effects in effect_sets:
             new = tuple(name for name in effects if name not in warm.payload["model"].values)
-            _, screened = self._screen(self._extend(warm.payload["model"], effects), new, everything)
-            model, resid, jac = self._lm(screened, everything, self.iterations)
-            # the prediction's fit sees no held-out frame: the new effects are screened again,
-            # from the warm held-out fit, on the train frames alone (a start chosen on all
-            # frames could stall in another basin than the train frames' best, and did)
-            helds = []
+            requests.append((self._extend(warm.payload["model"], effects), new, everything))
             for (train, _), warm_held in zip(self.splits, warm.payload["held_models"]):
-                _, held_screened = self._screen(self._extend(warm_held, effects), new, train)
-                helds.append(self._lm(held_screened, train, self.iterations))
-        terms = ([self._heldout_terms(*run, held) for run, (_, held) in zip(helds, self.splits)]
+                requests.append((self._extend(warm_held, effects), new, train))
+        screened = [start for _, start in self._screen_many(requests)]
+        ended = self._lm_many(screened, [mask for _, _, mask in requests], self.iterations)
+        per, alone = 1 + len(self.splits), len(effect_sets) == 1
+        out = [self._scored(effects, ended[k * per], ended[k * per + 1:(k + 1) * per], clock if alone else None)
+               for k, effects in enumerate(effect_sets)]
+        if not alone:
+            self.say(f"  {len(effect_sets)} models fitted side by side: {time.perf_counter() - clock:.0f} s")
+        return out
+
+    def _scored(self, effects: tuple[str, ...], run: tuple[_Model, Tensor, Tensor],
+                helds: Sequence[tuple[_Model, Tensor, Tensor]], clock: float | None = None) -> ModelFit:
+        """The ModelFit of ``effects`` from its all-frames LM ``run`` and its splits' (``helds``,
+        one per :attr:`splits`); says its figures (and the seconds since ``clock`` when given)."""
+        model, resid, jac = run
+        terms = ([self._heldout_terms(*held_run, held) for held_run, (_, held) in zip(helds, self.splits)]
                  if self.heldout_deviance else None)
-        out = self._score(effects, model, self._uncertainty(model, resid, jac), [run[0] for run in helds], terms)
+        out = self._score(effects, model, self._uncertainty(model, resid, jac), [held_run[0] for held_run in helds],
+                          terms)
+        seconds = "" if clock is None else f", {time.perf_counter() - clock:.0f} s"
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
-                 f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px), "
-                 f"{time.perf_counter() - clock:.0f} s")
+                 f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px){seconds}")
         return out
 
     def search_starts(self, result: FitResult, count: int) -> list[_Model]:
