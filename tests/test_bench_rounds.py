@@ -16,7 +16,7 @@ def test_quick_round_writes_json_and_the_ways_agree(tmp_path):
     sys.modules["bench_rounds"] = module
     spec.loader.exec_module(module)
     out = tmp_path / "quick.json"
-    returned = module.main(["--quick", "--out", str(out)])
+    returned = module.main(["--quick", "--repeats", "1", "--out", str(out)])
     data = json.loads(out.read_text())
     assert data == json.loads(json.dumps(returned))
     round_ = data["round"]

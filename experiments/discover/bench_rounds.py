@@ -11,10 +11,11 @@ that they end in the same place.
 
     python experiments/discover/bench_rounds.py                        # the shipped T-handle, default settings
     python experiments/discover/bench_rounds.py --recording experiments/discover/recordings_fresh2/control_tshape
-    python experiments/discover/bench_rounds.py --quick --out /tmp/q.json   # two candidates, 2 iterations (the test)
+    python experiments/discover/bench_rounds.py --quick --repeats 1 --out /tmp/q.json   # two candidates, 2 iterations (the test)
 
 Prints the figures and writes JSON (default ``experiments/discover/results/bench_rounds.json``).
-Times on shared machines are noisy: read the ratio, measured in one process.
+Times on shared machines are noisy: read the ratios, measured in one process, the ways in turn
+(``--repeats``, medians).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import json
 import math
 import os
 import platform
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -83,11 +85,16 @@ def main(argv: list[str] | None = None) -> dict:
                         help="a recording folder (video.mp4, truth.json, mesh.obj, camera.json)")
     parser.add_argument("--quick", action="store_true", help=f"candidates {QUICK_CANDIDATES}, 2 iterations")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    parser.add_argument("--repeats", type=int, default=2,
+                        help="times each way runs, in turn, the order reversed every other time; medians reported")
     args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error(f"--repeats must be at least 1, got {args.repeats}")
     if not (args.recording / "video.mp4").is_file():
         parser.error(f"--recording must be a recording folder holding video.mp4, got {args.recording}")
 
-    # the CLI's default path: one albedo pass, the exposure fitted from 0.5 with a camera's rule,
+    # the default path as concealed.py's default-equivalent runs load it (its recording_parts: the
+    # shape from truth.json): one albedo pass, the exposure fitted from 0.5 with a camera's rule,
     # Huber's loss at 2 noise units, the first and the last quarter held out
     truth, shape, camera = recording_parts(args.recording)
     observation, problem, span = load_problem(args.recording, shape, camera, False,
@@ -96,20 +103,24 @@ def main(argv: list[str] | None = None) -> dict:
     coverage = torch.as_tensor(observation.coverage_moments[span])
     candidates = QUICK_CANDIDATES if args.quick else tuple(DEFAULT_CANDIDATES)
     video = VideoProblem(problem, candidates=candidates, iterations=2 if args.quick else 15, exposure=exposure,
-                         coverage=coverage, fit_exposure=True, robust=robust_setting(None, exposure), backcast=True)
+                         coverage=coverage, fit_exposure=True, robust=robust_setting(None, exposure), backcast=True,
+                         progress=print)
     clock = time.perf_counter()
     base = video.fit((), None)
     baseline_s = time.perf_counter() - clock
     sets = [(name,) for name in candidates]
-    clock = time.perf_counter()
-    together = video.fit_many(sets, base)
-    together_s = time.perf_counter() - clock
-    clock = time.perf_counter()
-    alone = [video.fit(effects, base) for effects in sets]
-    alone_s = time.perf_counter() - clock
-    clock = time.perf_counter()
-    each = [_each_alone(video, effects, base) for effects in sets]
-    each_s = time.perf_counter() - clock
+    ways = {"side_by_side": lambda: video.fit_many(sets, base),
+            "one_candidate_at_a_time": lambda: [video.fit(effects, base) for effects in sets],
+            "each_fit_alone": lambda: [_each_alone(video, effects, base) for effects in sets]}
+    seconds, fits = {way: [] for way in ways}, {}
+    for repeat in range(args.repeats):  # the ways in turn, the order reversed on every other repeat
+        for way in (list(ways) if repeat % 2 == 0 else list(ways)[::-1]):
+            clock = time.perf_counter()
+            fits[way] = ways[way]()
+            seconds[way].append(time.perf_counter() - clock)
+    each_s, alone_s, together_s = (statistics.median(seconds[way]) for way in
+                                   ("each_fit_alone", "one_candidate_at_a_time", "side_by_side"))
+    each, alone, together = fits["each_fit_alone"], fits["one_candidate_at_a_time"], fits["side_by_side"]
 
     result = {
         "env": {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
@@ -117,7 +128,8 @@ def main(argv: list[str] | None = None) -> dict:
         "config": {"recording": str(args.recording), "candidates": list(candidates), "quick": args.quick,
                    "iterations": video.iterations, "splits": len(video.splits)},
         "baseline_s": baseline_s,
-        "round": {"fits": len(sets) * (1 + len(video.splits)), "each_fit_alone_s": each_s,
+        "round": {"fits": len(sets) * (1 + len(video.splits)), "repeats": args.repeats, "seconds": seconds,
+                  "each_fit_alone_s": each_s,
                   "one_candidate_at_a_time_s": alone_s, "side_by_side_s": together_s,
                   "speedup": each_s / together_s, "speedup_over_one_candidate_at_a_time": alone_s / together_s},
         "largest_difference": _fits_agree(each, together),
