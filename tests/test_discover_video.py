@@ -761,6 +761,24 @@ def test_per_candidate_clock_and_lens_render_as_each_alone(exposure):
         assert float((together[1][0] - together[1][2]).abs().max()) > 1.0
 
 
+def _side_by_side_and_alone(video, starts, masks, iterations):
+    """``video._lm_many`` of ``starts`` on their ``masks``, then ``video._lm`` of each alone: both
+    results, and how many flights (renders) each way took."""
+    flights = []
+    render = video._fitted_moments
+
+    def counted(cands, effects_, fraction=None):
+        flights.append(len(cands))
+        return render(cands, effects_, fraction)
+
+    video._fitted_moments = counted
+    together = video._lm_many(starts, masks, iterations)
+    batched_flights = len(flights)
+    flights.clear()
+    alone = [video._lm(start, mask, iterations) for start, mask in zip(starts, masks)]
+    return together, alone, batched_flights, len(flights)
+
+
 @pytest.mark.parametrize("effects", [("quadratic_drag", "com_offset"), ("time_scale",), ("lens_distortion",)])
 def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
     """The screening's starts run in lockstep (_lm_many): every start, a clock's and a lens's
@@ -781,18 +799,7 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
                 values = {n: dict(p) for n, p in extended.values.items()}
                 values[name][pname] = value + sign * dv.EFFECT_SCALES[pname]
                 starts.append(dv._Model(extended.cands, values, extended.nuisances))
-    flights = []
-    render = video._fitted_moments
-
-    def counted(cands, effects_, fraction=None):
-        flights.append(len(cands))
-        return render(cands, effects_, fraction)
-
-    video._fitted_moments = counted
-    together = video._lm_many(starts, used, 3)
-    batched_flights = len(flights)
-    flights.clear()
-    alone = [video._lm(start, used, 3) for start in starts]
+    together, alone, batched_flights, alone_flights = _side_by_side_and_alone(video, starts, [used] * len(starts), 3)
     for (model_a, resid_a, jac_a), (model_b, resid_b, jac_b) in zip(together, alone):
         # residuals in noise units, Jacobian entries up to ~15 per scaled unit
         assert float((resid_a - resid_b).abs().max()) < 1e-7
@@ -803,7 +810,7 @@ def test_starts_run_side_by_side_end_where_each_ends_alone(effects):
                 assert float((model_a.values[name][pname] - value).abs().max()) < 1e-5 * dv.EFFECT_SCALES[pname]
         assert model_a.nuisances == pytest.approx(model_b.nuisances, abs=1e-8)
     # drag and offset: 9 starts, a clock's 3, a lens's 5, each batch sharing every flight
-    assert batched_flights * 2 < len(flights)
+    assert batched_flights * 2 < alone_flights
 
 
 
@@ -823,18 +830,7 @@ def test_fits_with_different_effects_and_frames_run_side_by_side():
               video._extend(model, ("lens_distortion",)), model]
     starts[0].values["quadratic_drag"]["drag_coefficient"] = torch.tensor(0.3, dtype=F64)
     masks = [used, train, used, train]
-    flights = []
-    render = video._fitted_moments
-
-    def counted(cands, effects_, fraction=None):
-        flights.append(len(cands))
-        return render(cands, effects_, fraction)
-
-    video._fitted_moments = counted
-    together = video._lm_many(starts, masks, 4)
-    batched_flights = len(flights)
-    flights.clear()
-    alone = [video._lm(start, mask, 4) for start, mask in zip(starts, masks)]
+    together, alone, batched_flights, alone_flights = _side_by_side_and_alone(video, starts, masks, 4)
     for (model_a, resid_a, jac_a), (model_b, resid_b, jac_b), mask in zip(together, alone, masks):
         assert len(resid_a) == len(resid_b) == video._vector(model_b.cands, video.effects(model_b.values),
                                                              model_b.nuisances, torch.as_tensor(mask)).shape[1]
@@ -846,7 +842,7 @@ def test_fits_with_different_effects_and_frames_run_side_by_side():
                 assert float((model_a.values[name][pname] - value).abs().max()) < 1e-5 * dv.EFFECT_SCALES[pname]
     # the drag moved from its start, and the train frames' fit differs from the all-frames one
     assert float(together[0][0].values["quadratic_drag"]["drag_coefficient"]) != 0.3
-    assert batched_flights * 2 < len(flights)
+    assert batched_flights * 2 < alone_flights
 
 def _ellipse_covariances(angles: np.ndarray, along: np.ndarray, across: np.ndarray) -> np.ndarray:
     """(T, 2, 2) covariances with variance ``along`` in direction ``angles`` and ``across`` a quarter turn off."""
