@@ -914,16 +914,16 @@ class VideoProblem:
         accepted one lowers it by less than ``tolerance`` of itself."""
         return self._lm_many([model], mask, iterations, tolerance)[0]
 
-    def _lm_many(self, models: Sequence[_Model], masks: np.ndarray | Sequence[np.ndarray], iterations: int,
+    def _lm_many(self, models: Sequence[_Model], masks: np.ndarray | Tensor | list, iterations: int,
                  tolerance: float = 1e-5) -> list[tuple[_Model, Tensor, Tensor]]:
         """:meth:`_lm` from each of several starts, in lockstep: every iteration's Jacobians, and
         every round of trial steps, of the starts still running share one flight and render (the
         screening's starts, :meth:`_screen_many`, and the refits of :meth:`fit_many`; a flight of a
         few rows costs its integrator's calls, not its size). Each start keeps its own damping and
-        stopping, as alone. ``masks``: the (T,) frames every start fits, or one per start (a
-        held-out fit's train frames beside an all-frames fit); the starts may hold different
-        effects."""
-        if isinstance(masks, np.ndarray) and masks.ndim == 1:
+        stopping, as alone. ``masks``: the (T,) frames every start fits (an array or tensor), or a
+        list of them, one per start (a held-out fit's train frames beside an all-frames fit); the
+        starts may hold different effects."""
+        if not isinstance(masks, (list, tuple)):
             masks = [masks] * len(models)
         used = self.problem.used
         frames = [torch.as_tensor(mask, device=used.device) & used for mask in masks]
@@ -1157,7 +1157,8 @@ class VideoProblem:
         """:meth:`fit` of several models that each extend ``warm`` (a round of candidates), side by
         side: every model's fits, on all frames and on each split's train frames, are screened in
         one batch and refitted in one (:meth:`_screen_many`, :meth:`_lm_many`); each fit ends
-        where it would alone.
+        where it would alone, to rounding (a poorly conditioned one, a sphere's freed spin, can
+        end further off: experiments/discover/HISTORY.md, thirtieth session).
 
         A model starts from ``warm`` with its new effects screened on all frames. Its prediction's
         fits see no held-out frame: each starts from ``warm``'s fit of the same train frames, the
