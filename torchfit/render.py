@@ -560,7 +560,7 @@ def silhouette_moments(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Ten
     """
     posed = _posed(mesh, camera, rot, trans, distort, shutter)
     # poses in chunks: the facing test's (n, P, E, 2) and the cuts' work sets stay within the
-    # budget (one chunk of a whole batch of ball poses ran 1.6 times slower per pose)
+    # budget (40000 ball poses in one chunk ran 1.44 times as long as in chunks, side by side)
     count = len(rot)
     step = max(1, budget // max(mesh.normals.shape[0] * mesh.normals.shape[1] * 2, 1))
     pieces = [_moments_of(_contour_of(mesh, posed.rows(i, i + step)), budget) for i in range(0, count, step)]
