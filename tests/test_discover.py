@@ -141,6 +141,24 @@ def test_cli_points_fit_and_discover(tmp_path):
     assert abs(float(value) - 0.5) < 0.05 and 0 < float(std) < 0.05
 
 
+def test_cli_points_backcast(tmp_path):
+    """params.backcast on points: off by default (null), on when asked (the report says the start
+    is predicted backward, discover.json records it), and a clear error for anything else."""
+    track = synthesize_track(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): 0.5}, samples=50)
+    path = tmp_path / "track.csv"
+    write_points(track, path)
+    common = ["experiment=discover", f"data.points={path}", "object=sphere", "object.radius=0.02",
+              "object.mass=0.0027", "data.spin=null", "params.quick=true", "quiet=true"]
+    default = run(_compose(common), tmp_path / "default")
+    asked = run(_compose([*common, "params.backcast=true"]), tmp_path / "backcast")
+    assert default["backcast"] is False and asked["backcast"] is True
+    assert asked["verdict"] == default["verdict"] == ["quadratic_drag"]
+    assert "predicted backward" in (tmp_path / "backcast" / "report.txt").read_text()
+    assert "predicted backward" not in (tmp_path / "default" / "report.txt").read_text()
+    with pytest.raises(ConfigError, match="params.backcast must be true"):
+        run(_compose([*common, "params.backcast=sometimes"]), tmp_path / "bad")
+
+
 def test_discover_without_data_is_a_clear_error(tmp_path):
     cfg = _compose(["experiment=discover", "data.points=null"])
     with pytest.raises(ConfigError, match="give data.video=<recording> or data.points="):

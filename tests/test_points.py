@@ -3,6 +3,7 @@
 import json
 import math
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +83,37 @@ def test_point_fit_recovers_drag_and_lift():
     std = torch.sqrt(torch.diagonal(fit.shared_covariance) * problem.noise_var)
     assert abs(cd - 0.45) < 4 * float(std[0]) + 0.01 and abs(cl - 0.8) < 4 * float(std[1]) + 0.01
     assert math.sqrt(fit.rss / fit.n_obs) < 1.2e-3  # at the 1 mm noise
+
+
+def test_backcast_predicts_each_tracks_start_from_the_rest():
+    """PointsProblem(backcast=True): the first quarter of each track is held out as well, fitted
+    without it and predicted; the held-out RMS is the mean of the two parts'. Moving the first
+    quarter's samples leaves the backcast's fit as it was (it does not see them) and moves the
+    end's fit (which does)."""
+    tracks = [synthesize_track(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): 0.5}, samples=n, seed=k)
+              for k, n in enumerate((40, 33))]
+    data = batch_tracks(tracks)
+    forward = PointsProblem(data, candidates=("quadratic_drag",), noise_var=1e-6, **BALL)
+    both = PointsProblem(data, candidates=("quadratic_drag",), noise_var=1e-6, backcast=True, **BALL)
+    start_test, start_train = both.splits["train_backcast"][1], both.splits["train_backcast"][0]
+    assert start_test.weights.sum(-1).tolist() == [10, 9]  # ceil(0.25 n) of 40 and 33 samples
+    assert torch.equal(start_test.weights + start_train.weights, data.weights)
+    assert torch.all(start_test.weights[:, :9] == 1)
+    one, two = forward.fit(("quadratic_drag",), None), both.fit(("quadratic_drag",), None)
+    assert two.rss == pytest.approx(one.rss, rel=1e-12)  # the fit to all samples is the same
+    start_fit = two.payload["train_backcast"]
+    held = start_fit.residual * start_test.weights.unsqueeze(-1)
+    start_rms = math.sqrt(float((held ** 2).sum()) / (3 * float(start_test.weights.sum())))
+    assert two.heldout_rms == pytest.approx((one.heldout_rms + start_rms) / 2, rel=1e-9)
+    assert len(two.heldout_params) == 2 and set(two.heldout_params[1]) == {"quadratic_drag"}
+
+    moved = data.positions.clone()
+    moved[start_test.weights > 0] += torch.tensor([0.05, -0.03, 0.02], dtype=moved.dtype)
+    shifted = PointsProblem(replace(data, positions=moved), candidates=("quadratic_drag",), noise_var=1e-6,
+                            backcast=True, **BALL).fit(("quadratic_drag",), None)
+    assert torch.allclose(shifted.payload["train_backcast"].params, start_fit.params, rtol=1e-9, atol=1e-12)
+    assert not torch.allclose(shifted.payload["train"].params, two.payload["train"].params, rtol=1e-6)
+    assert shifted.heldout_rms > two.heldout_rms + 0.01  # the start, 6 cm off, is predicted badly
 
 
 def test_fit_points_writes_result(tmp_path):

@@ -419,12 +419,15 @@ class PointsProblem:
         candidates: effect names to try (those in ``POINT_EFFECTS``; ``magnus`` and
             ``angular_drag`` need a spin — measured, or fitted per track for ``magnus``).
         holdout: fraction of each track's end held out.
+        backcast: hold out each track's first ``holdout`` as well, predicted from a fit to the
+            rest (as :class:`torchfit.discover_video.VideoProblem`'s ``backcast``): the held-out
+            RMS is then the mean of the two parts'.
         noise_var: m²; estimated from the data when ``None``.
     """
 
     def __init__(self, data: PointData, *, area: float, mass: float, moment: float, g: float = 9.81,
                  up: int = 2, candidates: Sequence[str] = POINT_EFFECTS, holdout: float = 0.25,
-                 noise_var: float | None = None, step: float = 0.005, progress=None):
+                 backcast: bool = False, noise_var: float | None = None, step: float = 0.005, progress=None):
         bad = [c for c in candidates if c not in POINT_EFFECTS]
         if bad:
             raise ValueError(f"candidates {bad} do not apply to point tracks; must be among {list(POINT_EFFECTS)}")
@@ -433,7 +436,14 @@ class PointsProblem:
         self.data = data
         self.candidates = tuple(candidates)
         self.kw = {"area": area, "mass": mass, "moment": moment, "g": g, "up": up, "spin_known": data.spin is not None, "step": step}
-        self.train, self.test = data.split(1.0 - holdout)
+        # (train, held-out) of each split, named as the fits' payload keys: the end held out, and
+        # with backcast the start
+        end_train, end_test = data.split(1.0 - holdout)
+        self.splits = {"train": (end_train, end_test)}
+        if backcast:
+            start_test, start_train = data.split(holdout)
+            self.splits["train_backcast"] = (start_train, start_test)
+        self.train, self.test = end_train, end_test
         self.noise_var = float(noise_var) if noise_var is not None else estimate_noise(data)
         self.progress = progress
 
@@ -452,7 +462,7 @@ class PointsProblem:
             if "quadratic_drag" in old.model.effects and "wind" in model.effects:
                 values[("wind", "drag_coefficient")] = values[("quadratic_drag", "drag_coefficient")]
         else:
-            ballistic = ballistic_start(self.data if which == "all" else self.train, model.gravity)
+            ballistic = ballistic_start(self.data if which == "all" else self.splits[which][0], model.gravity)
             values = {("", "p0"): ballistic[:, :3], ("", "v0"): ballistic[:, 3:]}
         if model.fit_spin and ("magnus", "spin") not in values:
             values[("magnus", "spin")] = torch.full((self.data.batch, 3), 1.0, dtype=torch.float64)
@@ -462,14 +472,18 @@ class PointsProblem:
         model = self.model(effects)
         clock = time.perf_counter()
         full = fit_tracks(model, self.data, self.start(model, warm, "all"), shared=True)
-        train = fit_tracks(model, self.train, self.start(model, warm, "train"), shared=True)
-        held = train.residual * self.test.weights.unsqueeze(-1)
-        heldout = math.sqrt(float((held ** 2).sum()) / max(3 * float(self.test.weights.sum()), 1.0))
+        fits, split_rms = {"all": full}, []
+        for which, (train_data, test_data) in self.splits.items():
+            fits[which] = train = fit_tracks(model, train_data, self.start(model, warm, which), shared=True)
+            held = train.residual * test_data.weights.unsqueeze(-1)
+            split_rms.append(math.sqrt(float((held ** 2).sum()) / max(3 * float(test_data.weights.sum()), 1.0)))
         if self.progress:
             self.progress(f"    fit {list(effects)}: {time.perf_counter() - clock:.1f} s")
+        heldout_params = [{name: {p: entry["value"] for p, entry in params.items()}
+                           for name, params in self.describe(fits[which]).items()} for which in self.splits]
         return ModelFit(effects, full.rss, full.n_obs, full.n_free, self.describe(full),
-                        math.sqrt(full.rss / full.n_obs), heldout, {"all": full, "train": train},
-                        wald=self.wald(full))
+                        math.sqrt(full.rss / full.n_obs), float(np.mean(split_rms)), fits,
+                        wald=self.wald(full), heldout_params=heldout_params)
 
     def wald(self, fit: PointFit) -> dict:
         """``{effect: W}``: the Wald statistic of each effect's shared parameters against their null
@@ -783,18 +797,21 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
 
 
 def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict, located_after: dict,
-                  noise_var: float, holdout: float) -> str:
+                  noise_var: float, holdout: float, backcast: bool = False) -> str:
     """report.txt of :func:`discover_points`: a report a person reads in a minute (``holdout``:
-    the fraction at the end of each track that the held-out fits predict)."""
+    the fraction at the end of each track that the held-out fits predict; ``backcast``: and at
+    its start)."""
     base, final = chain[0], chain[-1]
 
     def mm(metres: float) -> str:
         return f"{metres * 1e3:.2f} mm"
+    held_start = (f", and the first {100 * holdout:.0f} % predicted backward from the rest: the mean of the two"
+                  if backcast else "")
     lines = [f"Where the baseline misses (RMS {mm(located['rms_m'])}): {located['summary']}.",
              *verdict_lines(selection, final.params),
              *limits_line(selection, "data"),
              f"Evidence: RMS {mm(base.fit_rms)} -> {mm(final.fit_rms)}; held-out RMS (the last "
-             f"{100 * holdout:.0f} % of each track, predicted) {mm(base.heldout_rms)} -> "
+             f"{100 * holdout:.0f} % of each track, predicted{held_start}) {mm(base.heldout_rms)} -> "
              f"{mm(final.heldout_rms)}; BIC {_criterion(base, noise_var)[1]:.1f} -> {_criterion(final, noise_var)[1]:.1f}.",
              f"Left after the final model (RMS {mm(located_after['rms_m'])}): {located_after['summary']}.",
              *not_named_lines(selection, lambda s: f"{mm(s['heldout_rms_before'])} -> {mm(s['heldout_rms_after'])}",
@@ -804,7 +821,8 @@ def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict
 
 def discover_points(data: PointData, *, area: float, mass: float, moment: float, g: float = 9.81, up: int = 2,
                     candidates: Sequence[str] = POINT_EFFECTS, settings: SelectionSettings = SelectionSettings(),
-                    out_dir: Path | None = None, progress=None, step: float = 0.005) -> dict:
+                    out_dir: Path | None = None, progress=None, step: float = 0.005,
+                    backcast: bool = False) -> dict:
     """Discover missing physics in 3D point tracks; write ``discover.json`` and residual plots.
 
     Args:
@@ -813,6 +831,8 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         g: m/s², along ``-up``.
         candidates: effects to try.
         settings: the selection rules.
+        backcast: hold out each track's first ``settings.holdout`` as well, predicted backward
+            (:class:`PointsProblem`).
         out_dir: where to write ``discover.json``, ``residuals.png`` and ``report.txt``
             (nothing written if None).
 
@@ -821,7 +841,7 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
     """
     clock = time.perf_counter()
     problem = PointsProblem(data, area=area, mass=mass, moment=moment, g=g, up=up, candidates=candidates,
-                            holdout=settings.holdout, step=step)
+                            holdout=settings.holdout, backcast=backcast, step=step)
     selection = select_effects(problem, settings, progress)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -842,6 +862,7 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         "tracks": len(data.names),
         "samples": int(data.weights.sum()),
         "settings": asdict(settings),
+        "backcast": backcast,
         "candidates": list(problem.candidates),
         "seconds": time.perf_counter() - clock,
         "provenance": provenance(),
@@ -855,7 +876,7 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
                        out_dir / "residuals.png", problem.noise_var)
         (out_dir / "report.txt").write_text(points_report(selection, chain, content["located"],
                                                           content["located_after"], problem.noise_var,
-                                                          settings.holdout))
+                                                          settings.holdout, backcast))
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]
     return content
 

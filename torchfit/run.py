@@ -124,9 +124,10 @@ def robust_setting(value, exposure: Exposure | None) -> float | None:
 
 
 def backcast_setting(value, exposure: Exposure | None) -> bool:
-    """``params.backcast`` as :func:`torchfit.discover_video.discover_video`'s ``backcast``: null,
-    the path's default (the first quarter held out as well where the blur is modelled, the path it
-    was measured on; the last quarter alone on the masks); true or false on either path."""
+    """``params.backcast`` as :func:`torchfit.discover_video.discover_video`'s (and
+    :func:`torchfit.discover.discover_points`') ``backcast``: null, the path's default (the first
+    quarter held out as well where the blur is modelled, the path it was measured on; the last
+    quarter alone on the masks and on points, ``exposure`` None); true or false on any path."""
     if value is None:
         return exposure is not None
     if not isinstance(value, bool):
@@ -430,6 +431,7 @@ def run_points(cfg: DictConfig, out_dir: Path, *, discover: bool) -> dict:
     settings = params(cfg)
     quick = bool(settings.pop("quick", False))
     candidates = settings.pop("candidates", None) or list(discovery.POINT_EFFECTS)
+    backcast = backcast_setting(settings.pop("backcast", None), None)
     if quick:
         candidates = [c for c in candidates if c in ("quadratic_drag", "magnus")]
     try:
@@ -438,7 +440,7 @@ def run_points(cfg: DictConfig, out_dir: Path, *, discover: bool) -> dict:
         raise ConfigError(f"params: {err}") from None
     ctx["progress"](f"points: {int(data.weights.sum())} samples from {cfg.data.points}")
     summary = discovery.discover_points(data, candidates=candidates, settings=rules, out_dir=out_dir,
-                                        progress=ctx["progress"], **body)
+                                        progress=ctx["progress"], backcast=backcast, **body)
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
     return summary
