@@ -961,8 +961,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     """``params.speed_noise``: true records the share of the noise read as growing with the speed
     (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused.
     ``params.robust``: a positive number is recorded and said in the report; zero or a word,
-    refused with the key named. ``params.edge_speed``: true records the speed term per model and
-    says it in the report; not a boolean, refused. (One run takes the three options.)"""
+    refused with the key named. (One run takes both options.)"""
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
 
@@ -976,10 +975,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
         cfg = _quick_discover(f"params.robust={bad}")
         with pytest.raises(ConfigError, match=f"params.robust must be Huber's threshold .* got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_robust_{bad}")
-    cfg = _quick_discover("params.edge_speed=1")
-    with pytest.raises(ConfigError, match="params.edge_speed must be true or false, got 1"):
-        run(cfg, tmp_path / "bad_edge_speed")
-    cfg = _quick_discover("params.speed_noise=true", "params.robust=2", "params.edge_speed=true")
+    cfg = _quick_discover("params.speed_noise=true", "params.robust=2")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert 0.0 <= content["noise_speed_share"] <= SPEED_NOISE_MAX
@@ -987,9 +983,6 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
     assert content["robust"] == 2.0
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
-    speed_term = content["edge_speed_fitted"]
-    assert len(speed_term) == len(content["models"]) and abs(speed_term[0]["value"]) < 1.0 and speed_term[0]["std"] > 0
-    assert any(line.startswith("Edge bias's speed term") for line in content["report"])
 
 
 def test_robust_setting_is_hubers_on_the_exposure_path_by_default():

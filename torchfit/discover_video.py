@@ -1718,11 +1718,6 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     lines.append(f"Segmentation edge bias (a nuisance every model fits): {edge['value']:+.2f} ± {edge['std']:.2f} px "
                  f"(observed outline outside the true one when positive), ends minus sides "
                  f"{edge['ends_minus_sides']:+.2f} ± {edge['ends_minus_sides_std']:.2f} px.")
-    fitted = final.payload.get("edge_speed")
-    if fitted is not None:
-        lines.append(f"Edge bias's speed term (a nuisance every model fits): {fitted['value']:+.2f} ± "
-                     f"{fitted['std']:.2f} px more at twice the mean speed of the silhouette "
-                     f"(prior 0 ± {EDGE_SPEED_PRIOR_PX:g} px).")
     fitted = final.payload.get("exposure")
     if fitted is not None:
         lines.append(f"Exposure (a nuisance every model fits): {fitted['value']:.3f} ± {fitted['std']:.3f} of the frame "

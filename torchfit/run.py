@@ -468,9 +468,6 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     speed_noise = settings.pop("speed_noise", False)
     if not isinstance(speed_noise, bool):
         raise ConfigError(f"params.speed_noise must be true or false, got {speed_noise!r}")
-    edge_speed = settings.pop("edge_speed", False)
-    if not isinstance(edge_speed, bool):
-        raise ConfigError(f"params.edge_speed must be true or false, got {edge_speed!r}")
     robust = settings.pop("robust", None)
     backcast = settings.pop("backcast", None)
     if quick:
@@ -527,7 +524,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             robust=robust, backcast=backcast, edge_speed=edge_speed, progress=ctx["progress"])
+                             robust=robust, backcast=backcast, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
