@@ -364,34 +364,6 @@ def test_refit_moments_have_no_size_bias_at_the_true_poses(name):
     assert abs(coarse["scale"].mean()) > 6e-4  # the check can fail: the coarse render does
 
 
-def test_edge_speed_term_moves_each_frames_outline_by_its_own_bias():
-    """VideoProblem(edge_speed=True): the edge bias's first term is b0 + b_v (s / s_mean - 1), s
-    the baseline's silhouette speed per frame. At b_v = 0 the residuals are the plain problem's
-    (with one more prior row, zero); at b_v each frame's observed moments are those of its own
-    bias; b_v's prior row is b_v over its prior."""
-    import torchfit.discover_video as dv
-
-    problem, truth = _synthetic("time_scale", {"time_scale": 1.0})
-    plain, fast = dv.VideoProblem(problem), dv.VideoProblem(problem, edge_speed=True)
-    assert fast.nuisance_names == ("edge", "edge_shape", "edge_speed") and fast.start_nuisances() == (0.0, 0.0, 0.0)
-    cands = truth.select(torch.zeros(1, dtype=torch.long))
-    plain._set_noise(dv._Model(cands, {}))
-    fast._set_noise(dv._Model(cands, {}, (0.0, 0.0, 0.0)))
-    used = fast.problem.used
-    ratio = fast.speed_ratio
-    assert abs(float(ratio[used].mean())) < 1e-12 and float(ratio[used].std()) > 0.05  # a throw slows and speeds up
-    a = plain._vector(cands, [], (0.1, -0.05), used)
-    b = fast._vector(cands, [], (0.1, -0.05, 0.0), used)
-    assert torch.allclose(a, b[:, :-1], rtol=1e-9, atol=1e-9) and float(b[0, -1]) == 0.0  # the tables to rounding
-    c = fast._vector(cands, [], (0.1, -0.05, 0.24), used)
-    assert float(c[0, -1]) == pytest.approx(0.24 / dv.EDGE_SPEED_PRIOR_PX)
-    observed = fast.observed_moments((0.1, -0.05, 0.24))
-    for t in (0, len(ratio) // 2, len(ratio) - 1):
-        alone = dv._moments_at(fast.edge_table[:, :, t:t + 1], (0.1 + 0.24 * float(ratio[t]), -0.05))
-        assert all(torch.allclose(m[t], n[0], rtol=1e-12, atol=1e-9) for m, n in zip(observed, alone))
-    assert not torch.allclose(observed[0], plain.observed_moments((0.1, -0.05))[0])
-
-
 def test_whitening_makes_frame_correlated_noise_independent_across_gaps():
     from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
 
@@ -725,8 +697,8 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
     assert torch.equal(after.cands.omega, moved.cands.omega)
 
 
-@pytest.mark.parametrize("ball, edge_speed", [(False, False), (True, False), (False, True)])
-def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball, edge_speed):
+@pytest.mark.parametrize("ball", [False, True])
+def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
     """The batched Jacobian (free state columns and every effect parameter in one render, the
     clock's included, each row on its own clock; the edge bias's columns reusing the unmoved
     render) equals the plain definition: move one scaled parameter by the step, recompute the
@@ -736,11 +708,10 @@ def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball, edge_
 
     shape = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0) if ball else None
     problem, truth = _synthetic("time_scale", {"time_scale": 1.02}, shape=shape)
-    video = dv.VideoProblem(problem, edge_speed=edge_speed)
-    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {}, video.start_nuisances())
+    video = dv.VideoProblem(problem)
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
     video._set_noise(model)
-    nuisances = (0.1, -0.05) + ((0.2,) if edge_speed else ())
-    model = video._extend(dv._Model(model.cands, {}, nuisances), ("time_scale", "quadratic_drag", "com_offset"))
+    model = video._extend(dv._Model(model.cands, {}, (0.1, -0.05)), ("time_scale", "quadratic_drag", "com_offset"))
     model.values["quadratic_drag"]["drag_coefficient"] = torch.tensor(0.4, dtype=F64)
     model.values["com_offset"]["offset"] = torch.tensor([0.002, -0.001, 0.003], dtype=F64)
     mask = video.problem.used

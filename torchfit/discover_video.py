@@ -247,8 +247,8 @@ EXPOSURE_SCALE = 0.05
 # Step unit of a fitted point spread (VideoProblem(point_spread=...)), px^2; its prior is the caller's.
 POINT_SPREAD_SCALE = 0.5
 # The nuisances a model can fit, in the order of its nuisances tuple, and their step units
-NUISANCE_SCALES = {"edge": EDGE_SCALE, "edge_shape": EDGE_SCALE, "edge_speed": EDGE_SCALE,
-                   "point_spread": POINT_SPREAD_SCALE, "exposure": EXPOSURE_SCALE}
+NUISANCE_SCALES = {"edge": EDGE_SCALE, "edge_shape": EDGE_SCALE, "point_spread": POINT_SPREAD_SCALE,
+                   "exposure": EXPOSURE_SCALE}
 _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabulated, pixels
 # The nuisance's second term: the bias is b0 + b1 e cos(2 phi), phi the angle between the outline
 # normal and the silhouette's major axis, e its elongation (see normal_axis_angle). b1 < 0: the
@@ -258,11 +258,6 @@ _EDGE_GRID = torch.linspace(-3.0, 3.0, 61, dtype=torch.float64)  # biases tabula
 # control_tshape; a single b made the fresh control_cylinder's outline fatter-and-shorter through a
 # false clock of 0.994 (experiments/discover/HISTORY.md). Prior: EDGE_SHAPE_PRIOR_PX.
 EDGE_SHAPE_PRIOR_PX = 0.15
-# An option (VideoProblem(edge_speed=True)): the first term b0 follows the silhouette's speed,
-# b0 + b_v (s / s_mean - 1), s the baseline's fitted centroid speed per frame; measured against the
-# true masks the T-handles' edge bias grows with the speed by 0.003-0.027 px per px/frame
-# (experiments/discover/HISTORY.md, thirty-first session). Prior of b_v, pixels:
-EDGE_SPEED_PRIOR_PX = 0.3
 # stored in discover.json's edge_px: which nuisance a run fitted (the mask's own axis until 2026-11-23)
 EDGE_FORM = "b0 + b1 e cos(2 phi), axis of the fitted silhouette"
 _EDGE_SHAPE_GRID = torch.linspace(-0.6, 0.6, 13, dtype=torch.float64)  # b1 tabulated, pixels
@@ -338,30 +333,17 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
     return out
 
 
-def _lerp_first(raw: Tensor, grid: Tensor, value: float | Tensor) -> Tensor:
-    """(K, ..., T, 6) ``raw`` interpolated linearly along its first axis, tabulated at ``grid``
-    (K,), at ``value``: one float, or (T,) one per frame; clamped to the grid."""
-    low_end, high_end, step = float(grid[0]), float(grid[-1]), float(grid[1] - grid[0])
-    if not torch.is_tensor(value):
-        position = (min(max(value, low_end), high_end) - low_end) / step
-        low = min(int(position), len(grid) - 2)
-        frac = position - low
-        return (1 - frac) * raw[low] + frac * raw[low + 1]
-    position = (value.to(raw).clamp(low_end, high_end) - low_end) / step
-    low = position.floor().long().clamp(max=len(grid) - 2)
-    frac = (position - low)[:, None]  # (T, 1)
-    frames = torch.arange(raw.shape[-2], device=raw.device)
-    moved = raw.movedim(-2, 1)  # (K, T, ..., 6)
-    return (1 - frac) * moved[low, frames].movedim(0, -2) + frac * moved[low + 1, frames].movedim(0, -2)
-
-
-def _moments_at(table: Tensor, bias: tuple[float, ...], frame_bias: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+def _moments_at(table: Tensor, bias: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
     """Area (T,), centroid (T, 2), covariance (T, 2, 2) at the edge bias ``(b0, b1)`` pixels, the
     first two of ``bias`` (a model's nuisances; bilinear in the (K0, K1, T, 6) table of
-    :func:`_edge_moments`); ``frame_bias``: (T,) pixels added to ``b0`` in each frame (the speed
-    term, ``VideoProblem(edge_speed=True)``), None for none."""
-    b0 = bias[0] if frame_bias is None else bias[0] + frame_bias
-    return central_moments(_lerp_first(_lerp_first(table, _EDGE_GRID, b0), _EDGE_SHAPE_GRID, bias[1]))
+    :func:`_edge_moments`)."""
+    raw = table
+    for grid, value in ((_EDGE_GRID, bias[0]), (_EDGE_SHAPE_GRID, bias[1])):
+        position = (min(max(value, float(grid[0])), float(grid[-1])) - float(grid[0])) / float(grid[1] - grid[0])
+        low = min(int(position), len(grid) - 2)
+        frac = position - low
+        raw = (1 - frac) * raw[low] + frac * raw[low + 1]  # the first axis interpolated away
+    return central_moments(raw)
 
 
 def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarray, crop: int | None = None,
@@ -490,12 +472,6 @@ class VideoProblem:
             experiments/discover/diagnose.py error-speed), and a floor the same on every frame
             gives the fast frames' errors the weight of evidence. Off: the same floor on every
             frame (the default).
-        edge_speed: the edge bias's first term follows the silhouette's speed, ``b0 + b_v (s /
-            s_mean - 1)`` with ``s`` (T,) the baseline's fitted centroid speed (px per frame,
-            fixed from the baseline on) and ``b_v`` one more nuisance of every model (px, prior
-            ``EDGE_SPEED_PRIOR_PX``): the segmentation reads a fast silhouette's outline otherwise
-            than a slow one's. An option under test (experiments/discover/HISTORY.md,
-            thirty-first session); off: one ``b0`` for every frame (the default).
         robust: a number ``k``: the criterion takes Huber's loss of the whitened residuals (squares
             within ``k`` noise units, linear beyond; :func:`torchfit.residuals.huber_root`) in place
             of their squares, everywhere they enter: the fits, the chi-squared and BIC, the
@@ -531,7 +507,7 @@ class VideoProblem:
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
-                 backcast: bool = False, edge_speed: bool = False, progress: Callable[[str], None] | None = None):
+                 backcast: bool = False, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -560,13 +536,11 @@ class VideoProblem:
         self.search_problem = problem
         self.exposure = exposure
         # the nuisances every model fits, in the order of _Model.nuisances
-        self.nuisance_names = (("edge", "edge_shape") + (("edge_speed",) if edge_speed else ())
-                               + (("point_spread",) if point_spread is not None else ())
+        self.nuisance_names = (("edge", "edge_shape") + (("point_spread",) if point_spread is not None else ())
                                + (("exposure",) if fit_exposure else ()))
         # each nuisance's start and Gaussian prior (mean, std): the exposure starts at the given
         # fraction with no prior
-        self.priors = {"edge": (0.0, EDGE_PRIOR_PX), "edge_shape": (0.0, EDGE_SHAPE_PRIOR_PX),
-                       "edge_speed": (0.0, EDGE_SPEED_PRIOR_PX)}
+        self.priors = {"edge": (0.0, EDGE_PRIOR_PX), "edge_shape": (0.0, EDGE_SHAPE_PRIOR_PX)}
         if point_spread is not None:
             self.priors["point_spread"] = (float(point_spread[0]), float(point_spread[1]))
         if fit_exposure:
@@ -589,8 +563,6 @@ class VideoProblem:
             train[held_idx] = False
             self.splits.append((train, used & ~train))
         self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
-        # edge_speed: (T,) s / s_mean - 1 of the baseline's silhouette speed, set by the baseline fit
-        self.speed_ratio: Tensor | None = None
         # the soft coverage's raw moments less the mask's: what the edge nuisance's moments of the
         # masks are shifted by when the observation is the coverage
         self.coverage_shift = None
@@ -679,16 +651,10 @@ class VideoProblem:
 
     def _channels_of(self, fitted: tuple[Tensor, Tensor, Tensor], nuisances: tuple[float, ...]) -> dict:
         """:meth:`_channels` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
-        observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in self.observed_moments(nuisances))
+        observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, nuisances))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
                 for k, v in channel_values(observed, self._spread(fitted, nuisances)).items()}
-
-    def observed_moments(self, nuisances: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
-        """Area (T,), centroid (T, 2), covariance (T, 2, 2) of the observed outlines moved by a
-        model's edge bias (its ``nuisances``; with ``edge_speed``, ``b0`` per frame)."""
-        speed = self.nuisance(nuisances, "edge_speed")
-        return _moments_at(self.edge_table, nuisances, None if speed is None else speed * self.speed_ratio)
 
     @property
     def train(self) -> np.ndarray:
@@ -1110,7 +1076,7 @@ class VideoProblem:
                                  **{name: (None if name not in self.nuisance_names else
                                            {"value": self.nuisance(model.nuisances, name),
                                             "std": std[1][self.nuisance_names.index(name)]})
-                                    for name in ("exposure", "point_spread", "edge_speed")},
+                                    for name in ("exposure", "point_spread")},
                                  "held_channels": held_channels,
                                  "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
                                  "heldout_centroid_px": float(np.mean(split_centroid)),
@@ -1259,9 +1225,6 @@ class VideoProblem:
             self.edge_table = _edge_moments(masks, fitted[2][0].cpu()).to(self.problem.masks.device)
             if self.coverage_shift is not None:
                 self.edge_table = self.edge_table + self.coverage_shift
-            if "edge_speed" in self.nuisance_names:
-                speed = torch.linalg.vector_norm(torch.gradient(fitted[1][0], dim=0)[0], dim=-1)
-                self.speed_ratio = speed / speed[self.problem.used].mean() - 1
             channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.nuisances).items()}
         used = self.problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
@@ -1391,8 +1354,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
-                   backcast: bool = False, edge_speed: bool = False,
-                   progress: Callable[[str], None] | None = None) -> dict:
+                   backcast: bool = False, progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1423,8 +1385,6 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             None: squares.
         backcast: the held-out test also predicts the first part of the frames backward from the
             rest, and scores the mean of the two parts' RMS (see :class:`VideoProblem`).
-        edge_speed: the edge bias grows with the silhouette's speed, one more nuisance (see
-            :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1442,7 +1402,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          fit_exposure=fit_exposure, point_spread=point_spread,
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
                          heldout_deviance=settings.heldout_margin is not None, robust=robust, backcast=backcast,
-                         edge_speed=edge_speed, progress=say)
+                         progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1476,7 +1436,6 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,
         "point_spread_fitted": [f.payload.get("point_spread") for f in chain] if point_spread is not None else None,
-        "edge_speed_fitted": [f.payload.get("edge_speed") for f in chain] if edge_speed else None,
         "models": [{"effects": list(f.effects), "chi2_per_obs": f.rss / max(f.n_obs, 1),
                     "heldout_rms": f.heldout_rms, "heldout_deviance": f.heldout_deviance,
                     "heldout_logdet": f.heldout_logdet,
@@ -1550,7 +1509,7 @@ def _unexplained(video: VideoProblem, final: ModelFit, located_after: dict, time
         with torch.no_grad():
             fitted = video._spread(video._fitted_moments(model.cands, video.effects(model.values),
                                                          video._fraction(model.nuisances)), model.nuisances)
-            observed = video.observed_moments(model.nuisances)
+            observed = _moments_at(video.edge_table, model.nuisances)
         stretch = motion_stretch(observed[2].cpu().numpy(), fitted[1][0].cpu().numpy(),
                                  fitted[2][0].cpu().numpy(), times, used)
         speed = stretch["speed_px_per_frame"][used]

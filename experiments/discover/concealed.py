@@ -85,7 +85,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
-            backcast: bool = False, edge_speed: bool = False) -> dict:
+            backcast: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -101,7 +101,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
-                          speed_noise=speed_noise, robust=robust, backcast=backcast, edge_speed=edge_speed)
+                          speed_noise=speed_noise, robust=robust, backcast=backcast)
 
 
 def robust_suffix(robust: float | None) -> str:
@@ -685,8 +685,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
-         robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         edge_speed: bool = False) -> None:
+         robust: float | None = None, declare_lens: bool = False, backcast: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -705,8 +704,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                             + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                             + ("_speednoise" if speed_noise else "")
                             + heldout_suffix(heldout_margin) + robust_suffix(robust)
-                            + backcast_suffix(backcast) + ("_edgespeed" if edge_speed else "")
-                            + edge_suffix(edge_px) + variant
+                            + backcast_suffix(backcast) + edge_suffix(edge_px) + variant
                             + (f"_read_{read_as}" if read_as else "")
                             + ("_lensdeclared" if declare_lens else ""))
     if table_only:
@@ -733,7 +731,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
-                          backcast=backcast, edge_speed=edge_speed)
+                          backcast=backcast)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -812,9 +810,6 @@ if __name__ == "__main__":
                     help="the held-out test also predicts the first quarter of the frames backward from the rest "
                          "and scores the mean of the two parts (discover_video(backcast=True); "
                          "results/concealed..._backcast/)")
-    ap.add_argument("--edge-speed", action="store_true",
-                    help="the edge bias grows with the silhouette's speed, one more nuisance of every model "
-                         "(discover_video(edge_speed=True); results/concealed..._edgespeed/)")
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
@@ -843,7 +838,6 @@ if __name__ == "__main__":
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
     variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
-    variant += "_edgespeed" if args.edge_speed else ""
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -962,4 +956,4 @@ if __name__ == "__main__":
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
-         declare_lens=args.declare_lens, backcast=args.backcast, edge_speed=args.edge_speed)
+         declare_lens=args.declare_lens, backcast=args.backcast)
