@@ -290,11 +290,16 @@ def test_rolling_shutter_first_order_matches_each_row_rendered_at_its_own_time()
     assert float((first_order - exact).abs().max()) < 0.1
 
 
-def test_rolling_shutter_decides_each_contour_edge_at_its_own_time():
+def test_rolling_shutter_decides_each_face_at_its_facets_own_time():
     """Over the flight (22 frames, 0.02-0.23 s), the first-order shutter keeps the area of the
-    row-by-row picture within 1 % and its centroid within 0.05 px (measured: 0.56 % and 0.03 px at
-    worst). With the contour edges decided at the frame's time instead, a face seen nearly edge-on
-    was counted on the wrong side and the area was off by 10 %."""
+    row-by-row picture within 1.5 % and its centroid within 0.1 px (measured: 0.15 % and 0.03 px
+    but at 0.12 s, where a face seen nearly edge-on makes 1.30 % and 0.083 px). Each face is
+    decided at its facet's time (the mean of its boundary's rows), the same for every edge it
+    borders, so the contour closes. With each edge decided at its own time the worst was 0.56 %
+    and 0.03 px, but a face turning during the readout could be counted facing at one of its
+    edges and not at another: an open contour, whose exact moments (Green's theorem) are not
+    those of any outline. With the contour edges decided at the frame's time, a face seen nearly
+    edge-on was counted on the wrong side and the area was off by 10 %."""
     from torchfit.dynamics import simulate
     from torchfit.losses import mask_moments
     from torchfit.render import Shutter
@@ -311,8 +316,8 @@ def test_rolling_shutter_decides_each_contour_edge_at_its_own_time():
                                          size=(120, 160), sigma=0.3, shutter=shutter)[0, 0]
         area, centroid = (float(first_order.sum()), float(exact.sum())), [mask_moments(image[None])[1][0]
                                                                           for image in (first_order, exact)]
-        assert abs(area[0] - area[1]) < 0.01 * area[1], frame_time
-        assert float((centroid[0] - centroid[1]).norm()) < 0.05, frame_time
+        assert abs(area[0] - area[1]) < 0.015 * area[1], frame_time
+        assert float((centroid[0] - centroid[1]).norm()) < 0.1, frame_time
 
 
 def test_rolling_shutter_render_gradcheck_float64():
@@ -497,6 +502,72 @@ def test_silhouette_moments_float32_and_behind_the_camera():
     assert all(bool(torch.isfinite(m).all()) for m in single)
     assert float(single[0][0]) == pytest.approx(float(exact[0][0]), rel=1e-4)
     assert float((single[1][0].double() - exact[1][0]).abs().max()) < 1e-3
+
+
+def _fast_throws(shape, count, seed):
+    """``count`` poses of ``shape`` 1.5-2.5 m in front of the camera, each with a velocity of
+    3 m/s and a spin of 10 rad/s in random directions."""
+    generator = torch.Generator().manual_seed(seed)
+    rot = quat_to_matrix(axis_angle_to_quat(2 * torch.randn(count, 3, dtype=F64, generator=generator)))
+    trans = torch.stack((0.4 * torch.randn(count, dtype=F64, generator=generator),
+                         0.3 * torch.randn(count, dtype=F64, generator=generator),
+                         1.5 + torch.rand(count, dtype=F64, generator=generator)), -1)
+    unit = lambda: torch.nn.functional.normalize(torch.randn(count, 3, dtype=F64, generator=generator), dim=-1)
+    return rot, trans, 3.0 * unit(), 10.0 * unit()
+
+
+@pytest.mark.parametrize("name", ["box", "cylinder", "sphere"])
+def test_rolling_shutter_contour_closes_and_its_moments_do_not_depend_on_the_chunks(name):
+    """Under a rolling shutter (30 µs per row) each part's contour edges form closed loops in
+    every pose (every end is shared by exactly two of them), so the exact moments are those of an
+    outline and the same whatever the chunking of the poses. Decided at each edge's own time,
+    1-10 % of these poses had an open contour and the moments moved by up to 1e-4 with the
+    chunks (2026-11-29)."""
+    from collections import Counter
+
+    from torchfit.effects import make_effect
+    from torchfit.render import Shutter, _contour_edges, _posed, silhouette_moments
+
+    shape = load_shape(primitive=name, density=400.0)
+    camera = Camera(900.0, 900.0, 640.0, 360.0, 1280, 720)
+    mesh = RenderMesh.from_shape(shape, F64)
+    rot, trans, velocity, spin = _fast_throws(shape, 400, seed=5)
+    line = make_effect("rolling_shutter", area=1.0, line_delay=torch.tensor(3e-5, dtype=F64))
+    shutter = Shutter(lambda rows: line.row_delay(rows, camera.cy), velocity, spin)
+    with torch.no_grad():
+        edge_idx, keep = _contour_edges(mesh, _posed(mesh, camera, rot, trans, None, shutter))
+        for n in range(len(rot)):
+            for part in range(edge_idx.shape[1]):
+                ends = Counter(edge_idx[n, part][keep[n, part]].flatten().tolist())
+                assert ends and set(ends.values()) == {2}, (n, part)
+        coarse = silhouette_moments(mesh, camera, rot, trans, shutter=shutter, budget=1 << 30)
+        fine = silhouette_moments(mesh, camera, rot, trans, shutter=shutter, budget=1 << 12)
+    for a, b in zip(coarse, fine):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-9)
+
+
+def test_only_the_contour_edges_ends_are_projected_where_they_are_fewer():
+    """A ball's mesh (642 vertices) has far fewer contour-edge ends than vertices: only those
+    are projected and distorted. They are the pixels every vertex projected, then gathered, gives
+    (through a barrel lens, one per candidate of 4, 25 poses each)."""
+    from torchfit.effects import make_effect
+    from torchfit.render import _contour_edges, _distort_pixels, _end_pixels, _posed
+
+    shape = load_shape(primitive="sphere", dims={"radius": 0.033, "subdivisions": 3}, density=380.0)
+    camera = Camera(900.0, 900.0, 640.0, 360.0, 1280, 720)
+    mesh = RenderMesh.from_shape(shape, F64)
+    rot, trans, _, _ = _fast_throws(shape, 100, seed=3)
+    lens = make_effect("lens_distortion", area=1.0, k1=torch.tensor([-0.2, -0.1, 0.0, 0.05], dtype=F64),
+                       k2=torch.tensor([0.04, 0.0, 0.01, 0.0], dtype=F64))
+    with torch.no_grad():
+        posed = _posed(mesh, camera, rot, trans, lens.distort, None)
+        edge_idx, keep = _contour_edges(mesh, posed)
+        assert edge_idx[0].numel() < len(mesh.vertices) / 2
+        ends = _end_pixels(mesh, camera, posed, edge_idx, lens.distort)
+        every = _distort_pixels(camera, lens.distort, project(camera, torch.einsum("nij,vj->nvi", rot, mesh.vertices)
+                                                               + trans[:, None])[0])
+        gathered = torch.gather(every, 1, edge_idx.reshape(len(rot), -1, 1).expand(-1, -1, 2)).reshape(ends.shape)
+    assert torch.allclose(ends, gathered, rtol=0, atol=1e-9)
 
 
 def test_silhouette_moments_through_a_lens_and_a_shutter_match_the_fine_render():

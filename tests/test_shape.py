@@ -114,3 +114,24 @@ def test_open_mesh_needs_explicit_hull_fallback(caplog):
 def test_every_primitive_builds():
     for name in PRIMITIVES:
         assert load_shape(primitive=name, density=500.0).mass > 0
+
+
+@pytest.mark.parametrize("name, dims, facets, sizes", [
+    ("box", {}, 6, {4}),
+    ("cylinder", {"sections": 32}, 34, {4, 32}),
+    ("sphere", {"subdivisions": 2}, 320, {3}),
+])
+def test_convex_parts_know_each_edges_facets(name, dims, facets, sizes):
+    """Each contour-candidate edge names the facets (maximal coplanar face groups) either side of
+    it, and each facet's weights are one over its boundary vertices: a box's 6 quads, a
+    cylinder's 32 side quads and two 32-gon caps (their triangles joined), an icosphere's
+    triangles. The two facets of an edge differ, and its ends are on both."""
+    part = load_shape(primitive=name, dims=dims, density=500.0).parts[0]
+    weights = part.facet_weights
+    assert weights.shape == (facets, len(part.vertices))
+    assert set((weights > 0).sum(1).tolist()) == sizes
+    np.testing.assert_allclose(weights.sum(1), 1.0)
+    assert np.all(part.edge_facets[:, 0] != part.edge_facets[:, 1])
+    for side in range(2):
+        assert np.all(weights[part.edge_facets[:, side, None], part.edges] > 0)
+

@@ -62,6 +62,10 @@ class RenderMesh:
         offsets: (P, E, 2) plane offsets ``n · x`` of those faces, metres.
         valid: (P, E) bool, False on padding.
         centroids: (P, 3) a point inside each part, mesh coordinates.
+        edge_facets: (P, E, 2) int64 the facet of each edge's two faces, indices into
+            ``facet_weights`` (0 on padding).
+        facet_weights: (F, V) each facet's boundary vertices, each one over their count
+            (:attr:`torchfit.shape.ConvexPart.facet_weights`, all parts').
     """
 
     vertices: Tensor
@@ -70,21 +74,27 @@ class RenderMesh:
     offsets: Tensor
     valid: Tensor
     centroids: Tensor
+    edge_facets: Tensor
+    facet_weights: Tensor
 
     @staticmethod
     def from_shape(shape, dtype: torch.dtype = torch.float32, device="cpu") -> "RenderMesh":
         parts = shape.parts
         n_edges = max(len(p.edges) for p in parts)
-        vertices, edges, normals, offsets, valid = [], [], [], [], []
-        base = 0
+        vertices, edges, normals, offsets, valid, facets = [], [], [], [], [], []
+        base = facet_base = 0
+        weights = np.zeros((sum(len(p.facet_weights) for p in parts), sum(len(p.vertices) for p in parts)))
         for part in parts:
             pad = n_edges - len(part.edges)
             edges.append(np.concatenate([part.edges + base, np.zeros((pad, 2), np.int64)]))
             normals.append(np.concatenate([part.edge_normals, np.zeros((pad, 2, 3))]))
             offsets.append(np.concatenate([part.edge_offsets, np.zeros((pad, 2))]))
             valid.append(np.arange(n_edges) < len(part.edges))
+            facets.append(np.concatenate([part.edge_facets + facet_base, np.zeros((pad, 2), np.int64)]))
+            weights[facet_base:facet_base + len(part.facet_weights), base:base + len(part.vertices)] = part.facet_weights
             vertices.append(part.vertices)
             base += len(part.vertices)
+            facet_base += len(part.facet_weights)
 
         def as_tensor(value, kind=dtype):
             return torch.as_tensor(np.stack(value) if isinstance(value, list) else value,
@@ -97,6 +107,8 @@ class RenderMesh:
             as_tensor(offsets),
             as_tensor(valid, torch.bool),
             as_tensor(np.stack([p.centroid for p in parts])),
+            as_tensor(facets, torch.int64),
+            as_tensor(weights),
         )
 
 
@@ -111,9 +123,14 @@ class Shutter:
     for a point crossing 1000 px/s at 30 µs/row; one step from the frame-time row leaves
     ``(δ ẏ)²``). The error of the first order, ``½ a Δ²`` and ``½ (ω Δ)² r``, is ~0.3 mm for a
     7 ms delay (30 µs/row, 240 rows off centre), ω 10 rad/s and a 10 cm body. Which edges are
-    contour edges is decided at each edge's own time (the mean of its ends'): decided at the
-    frame's time instead, a face seen nearly edge-on could be counted on the wrong side and the
-    silhouette lost most of its area (a box of the rolling-shutter set, -65 % in one frame).
+    contour edges is decided face by face, each at its facet's time (the mean of its boundary
+    vertices' row delays), the same for every edge that borders it, so each part's contour edges
+    close into a loop: decided at each edge's own time, a face turning during the readout could
+    count as facing at one of its edges and not at another, and the open contour's exact moments
+    were those of no outline (1-10 % of the poses of a thrown box, cylinder or ball at 3 m/s,
+    10 rad/s and 30 µs/row; 2026-11-29). Decided at the frame's time instead, a face seen
+    nearly edge-on could be counted on the wrong side and the silhouette lost most of its area
+    (a box of the rolling-shutter set, -65 % in one frame).
 
     Attributes:
         delay: (N, V) pinhole pixel rows -> (N, V) seconds after the frame's stated time
@@ -180,14 +197,17 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
 
 
 class _Posed(NamedTuple):
-    """A batch of poses' per-vertex quantities (:func:`_posed`), from which :func:`_contour_of`
-    finds the contour edges; rows can be taken in slices (:meth:`rows`)."""
+    """A batch of poses' per-vertex quantities (:func:`_posed`), from which :func:`_contour_edges`
+    finds the contour edges; rows can be taken in slices (:meth:`rows`). No vertex is projected
+    here: only the contour edges' ends are (:func:`_end_pixels`)."""
 
-    pixels: Tensor  # (N, V, 2) the vertices' image pixels (distorted where there is a lens)
-    in_front: Tensor  # (N, V) in front of the camera
-    centre_px: Tensor  # (N, P, 2) each part's centroid's pixel
+    rot: Tensor  # (N, 3, 3) mesh to camera
+    trans: Tensor  # (N, 3) metres
+    behind: Tensor  # (N,) a vertex at or behind the camera's nearest depth: the shape is not drawn
+    centre_px: Tensor  # (N, P, 2) each part's centroid's pixel (distorted where there is a lens)
     trans_body: Tensor  # (N, 3) the camera's position in mesh coordinates, negated: R^T t
-    vertex_delay: Tensor | None  # (N, V) a rolling shutter's row delay of each vertex
+    moved: Tensor | None  # (N, V, 3) a rolling shutter's vertices at their rows' times, camera frame
+    facet_delay: Tensor | None  # (N, F) a rolling shutter's row delay of each facet (its boundary's mean)
     drift: Tensor | None  # (N, 3) the shutter's motion of the camera in mesh coordinates per unit delay
 
     def rows(self, start: int, stop: int) -> "_Posed":
@@ -197,49 +217,114 @@ class _Posed(NamedTuple):
 def _contour(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
              distort: Callable[[Tensor], Tensor] | None, shutter: Shutter | None) -> _Contour:
     """Each convex part's contour edges as lines (:func:`contour_lines`) and as walked segments."""
-    return _contour_of(mesh, _posed(mesh, camera, rot, trans, distort, shutter))
+    posed, ends, keep, _ = _contour_ends(mesh, camera, rot, trans, distort, shutter)
+    return _lines_of(ends, keep, posed)
+
+
+def _contour_ends(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
+                  distort: Callable[[Tensor], Tensor] | None, shutter: Shutter | None,
+                  budget: int = 1 << 20) -> tuple[_Posed, Tensor, Tensor, int]:
+    """The poses (:func:`_posed`), the (N, P, K, 2, 2) pixels of each part's contour edges' ends,
+    the (N, P, K) flags of the slots that hold one, and the poses per chunk of ``budget``
+    elements of the facing test.
+
+    The faces' facing test picks the contour edges, the poses in chunks; then only those edges'
+    ends are projected and distorted (:func:`_end_pixels`), all poses at once: a lens's
+    parameters are one per candidate, repeated over its rows.
+    """
+    posed = _posed(mesh, camera, rot, trans, distort, shutter)
+    step = max(1, budget // max(mesh.normals.shape[0] * mesh.normals.shape[1] * 2, 1))
+    chunks = [_contour_edges(mesh, posed.rows(i, i + step)) for i in range(0, len(rot), step)]
+    if len(chunks) == 1:
+        edge_idx, keep = chunks[0]
+    else:  # each chunk as many slots as its own most; padded slots are not contour edges
+        width = max(idx.shape[2] for idx, _ in chunks)
+        edge_idx = torch.cat([torch.nn.functional.pad(idx, (0, 0, 0, width - idx.shape[2])) for idx, _ in chunks])
+        keep = torch.cat([torch.nn.functional.pad(k, (0, width - k.shape[2])) for _, k in chunks])
+    return posed, _end_pixels(mesh, camera, posed, edge_idx, distort), keep, step
 
 
 def _posed(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
-           distort: Callable[[Tensor], Tensor] | None, shutter: Shutter | None) -> _Posed:
-    """The vertices projected (moved by a rolling shutter, then distorted by a lens) and what the
-    edges' facing test needs, for N poses (:func:`contour_lines`' arguments)."""
-    points = torch.einsum("nij,vj->nvi", rot, mesh.vertices) + trans.unsqueeze(1)  # (N, V, 3)
+           distort: Callable[[Tensor], Tensor] | None, shutter: Shutter | None,
+           min_depth: float = 1e-3) -> _Posed:
+    """What the edges' facing test and the projection of their ends need, for N poses
+    (:func:`contour_lines`' arguments). A rolling shutter moves every vertex to its row's time
+    (its rows are the projected vertices'); otherwise nothing is computed per vertex but, for the
+    poses whose mesh could reach ``min_depth``, the vertices' depths (a vertex there hides the
+    shape, as :func:`torchfit.camera.project`'s ``in_front``)."""
     centres = torch.einsum("nij,pj->npi", rot, mesh.centroids) + trans.unsqueeze(1)
-    vertex_delay = drift = None
+    moved = facet_delay = drift = None
     if shutter is not None:
-        points, vertex_delay = shutter.move(camera, points, trans)
+        points = torch.einsum("nij,vj->nvi", rot, mesh.vertices) + trans.unsqueeze(1)  # (N, V, 3)
+        moved, vertex_delay = shutter.move(camera, points, trans)
+        facet_delay = vertex_delay @ mesh.facet_weights.T  # (N, F)
         centres = shutter.move(camera, centres, trans)[0]
         drift = shutter.drift(rot, trans)
-    pixels, in_front = project(camera, points)  # (N, V, 2), (N, V)
+        behind = ~(moved[..., 2] > min_depth).all(dim=1)  # as project's in_front
+    else:  # every vertex's depth only where the mesh's reach from its origin could cross min_depth
+        reach = float(mesh.vertices.detach().norm(dim=-1).max())
+        behind = torch.zeros(len(rot), dtype=torch.bool, device=rot.device)
+        near = trans[:, 2].detach() - reach <= min_depth
+        if bool(near.any()):
+            depth = torch.einsum("nj,vj->nv", rot[near, 2], mesh.vertices) + trans[near, 2:]
+            behind[near] = ~(depth > min_depth).all(dim=1)
     centre_px, _ = project(camera, centres)  # (N, P, 2)
     if distort is not None:
-        pixels, centre_px = (_distort_pixels(camera, distort, p) for p in (pixels, centre_px))
+        centre_px = _distort_pixels(camera, distort, centre_px)
     trans_body = torch.einsum("nji,nj->ni", rot, trans)  # (N, 3)
-    return _Posed(pixels, in_front, centre_px, trans_body, vertex_delay, drift)
+    return _Posed(rot, trans, behind, centre_px, trans_body, moved, facet_delay, drift)
 
 
-def _contour_of(mesh: RenderMesh, posed: _Posed) -> _Contour:
-    """:func:`_contour` from the poses' per-vertex quantities."""
-    pixels, in_front, centre_px = posed.pixels, posed.in_front, posed.centre_px
+def _contour_edges(mesh: RenderMesh, posed: _Posed) -> tuple[Tensor, Tensor]:
+    """(n, P, K, 2) the vertex indices of each part's contour edges, K the most of any part and
+    pose, and (n, P, K) which slots hold one: an edge between a face that faces the camera and
+    one that does not."""
     # a face faces the camera (at the origin) when n_w · x_w < 0; in mesh coordinates that is
     # o + n · (Rᵀ t) < 0
     side = mesh.offsets + torch.einsum("pefk,nk->npef", mesh.normals, posed.trans_body)
-    if posed.vertex_delay is not None:  # each edge's two faces at the time its row is exposed (its ends' mean)
-        edge_delay = posed.vertex_delay[:, mesh.edges].mean(-1)  # (N, P, E)
+    if posed.facet_delay is not None:  # each face at the time its facet's rows are exposed (their mean)
         drift = torch.einsum("pefk,nk->npef", mesh.normals, posed.drift)
-        side = side + edge_delay.unsqueeze(-1) * drift
+        side = side + posed.facet_delay[:, mesh.edge_facets] * drift
     facing = side < 0
-    contour = (facing[..., 0] != facing[..., 1]) & mesh.valid  # (N, P, E)
+    contour = (facing[..., 0] != facing[..., 1]) & mesh.valid  # (n, P, E)
     count = int(contour.sum(-1).max()) if contour.numel() else 0
     count = max(count, 1)
     order = torch.argsort(contour.to(torch.int8), dim=-1, descending=True, stable=True)[..., :count]
-    keep = torch.gather(contour, -1, order)  # (N, P, K)
+    keep = torch.gather(contour, -1, order)  # (n, P, K)
     edge_idx = torch.gather(mesh.edges.expand(contour.shape[0], -1, -1, -1), 2,
-                            order.unsqueeze(-1).expand(-1, -1, -1, 2))  # (N, P, K, 2)
-    n = pixels.shape[0]
-    ends = torch.gather(pixels, 1, edge_idx.reshape(n, -1, 1).expand(-1, -1, 2))
-    ends = ends.reshape(*edge_idx.shape, 2)  # (N, P, K, 2 ends, 2 uv)
+                            order.unsqueeze(-1).expand(-1, -1, -1, 2))  # (n, P, K, 2)
+    return edge_idx, keep
+
+
+def _end_pixels(mesh: RenderMesh, camera: Camera, posed: _Posed, edge_idx: Tensor,
+                distort: Callable[[Tensor], Tensor] | None) -> Tensor:
+    """(N, P, K, 2 ends, 2 uv) image pixels of the (N, P, K, 2) vertices ``edge_idx``: moved by
+    the rolling shutter where there is one, projected, then distorted by the lens. Whichever is
+    fewer is projected: the contour edges' ends (a ball's mesh, 642 vertices and some 180 ends),
+    or every vertex, then gathered (a box's 8 vertices and up to 12 ends)."""
+    n, ends = len(edge_idx), edge_idx.reshape(len(edge_idx), -1)  # (N, M)
+    if ends.shape[1] < len(mesh.vertices):
+        if posed.moved is not None:
+            points = torch.gather(posed.moved, 1, ends.unsqueeze(-1).expand(-1, -1, 3))  # (N, M, 3)
+        else:
+            points = torch.einsum("nij,nmj->nmi", posed.rot, mesh.vertices[ends]) + posed.trans.unsqueeze(1)
+        index = None
+    else:
+        points = (posed.moved if posed.moved is not None
+                  else torch.einsum("nij,vj->nvi", posed.rot, mesh.vertices) + posed.trans.unsqueeze(1))
+        index = ends
+    pixels, _ = project(camera, points)
+    if distort is not None:
+        pixels = _distort_pixels(camera, distort, pixels)
+    if index is not None:
+        pixels = torch.gather(pixels, 1, index.unsqueeze(-1).expand(-1, -1, 2))
+    return pixels.reshape(*edge_idx.shape, 2)
+
+
+def _lines_of(ends: Tensor, keep: Tensor, posed: _Posed) -> _Contour:
+    """The :class:`_Contour` of contour edges with (N, P, K, 2, 2) ``ends`` (pixels) and (N, P, K)
+    ``keep`` flags: each edge's line, facing away from its part's centre."""
+    centre_px = posed.centre_px
     start, direction = ends[..., 0, :], ends[..., 1, :] - ends[..., 0, :]
     length = direction.norm(dim=-1).clamp(min=1e-9)
     a = direction[..., 1] / length
@@ -248,7 +333,7 @@ def _contour_of(mesh: RenderMesh, posed: _Posed) -> _Contour:
     side = a * centre_px[..., None, 0] + b * centre_px[..., None, 1] + c  # centre must be < 0
     sign = torch.where(side > 0, -1.0, 1.0).to(a.dtype)
     lines = torch.stack((a * sign, b * sign, c * sign), dim=-1)  # (N, P, K, 3)
-    behind = ~in_front.all(dim=1, keepdim=True)  # (N, 1): any vertex behind hides the shape
+    behind = posed.behind[:, None]  # (N, 1): any vertex behind hides the shape
     far = torch.tensor([0.0, 0.0, -_FAR], dtype=lines.dtype, device=lines.device)
     lines = torch.where(keep.unsqueeze(-1), lines, far)
     hide = torch.tensor([0.0, 0.0, _FAR], dtype=lines.dtype, device=lines.device)
@@ -558,21 +643,26 @@ def silhouette_moments(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Ten
         centroid: (N, 2) ``(u, v)`` image pixels.
         covariance: (N, 2, 2) pixels², as :func:`torchfit.losses.mask_moments`.
     """
-    posed = _posed(mesh, camera, rot, trans, distort, shutter)
-    # poses in chunks: the facing test's (n, P, E, 2) and the cuts' work sets stay within the
-    # budget (40000 ball poses in one chunk ran 1.44 times as long as in chunks, side by side)
-    count = len(rot)
-    step = max(1, budget // max(mesh.normals.shape[0] * mesh.normals.shape[1] * 2, 1))
-    pieces = [_moments_of(_contour_of(mesh, posed.rows(i, i + step)), budget) for i in range(0, count, step)]
-    if not pieces:
+    if not len(rot):
         return rot.new_zeros(0), rot.new_zeros(0, 2), rot.new_zeros(0, 2, 2)
+    # the facing test, the lines and the cuts in chunks of poses, within the budget (40000 ball
+    # poses in one chunk ran 1.44 times as long as in chunks, side by side); only the contour
+    # edges' ends are projected, all poses at once (:func:`_contour_ends`)
+    posed, ends, keep, step = _contour_ends(mesh, camera, rot, trans, distort, shutter, budget)
+    pieces = [_moments_of(_lines_of(ends[i:i + step], keep[i:i + step], posed.rows(i, i + step)), budget)
+              for i in range(0, len(rot), step)]
     return tuple(torch.cat(piece) for piece in zip(*pieces))
 
 
 def _moments_of(contour: _Contour, budget: int) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`silhouette_moments` of N poses' contour (:func:`_contour_of`)."""
-    # about a point near each silhouette: the second moments do not cancel digits
-    origin = contour.edges.detach().mean(dim=(1, 2, 3))  # (N, 2)
+    """:func:`silhouette_moments` of N poses' contour (:func:`_contour`)."""
+    # about a point near each silhouette, the mean of its drawn edges' ends: the second moments do
+    # not cancel digits. Only drawn edges: a rolling shutter's contour, each edge decided at its
+    # own time, need not close exactly, and then the sum depends on the origin (a mean over every
+    # slot made a ball's moments depend on how many slots its chunk of poses had, 1e-4 relative)
+    drawn = contour.drawn.to(contour.edges.dtype)[..., None, None]  # (N, P, K, 1, 1)
+    origin = ((contour.edges.detach() * drawn).sum(dim=(1, 2, 3))
+              / (2 * drawn.sum(dim=(1, 2, 3))).clamp(min=1.0))  # (N, 2)
     edges = contour.edges - origin[:, None, None, None]
     lines = contour.lines
     lines = torch.cat((lines[..., :2], (lines[..., 2] + (lines[..., :2] * origin[:, None, None]).sum(-1)).unsqueeze(-1)), -1)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 __all__ = ["Shape", "ConvexPart", "PRIMITIVES", "make_shape", "load_shape", "primitive_parts"]
@@ -35,6 +37,11 @@ class ConvexPart:
         edge_normals: (E, 2, 3) unit outward normals of the two faces adjacent to each edge.
         edge_offsets: (E, 2) plane offsets ``n · x`` of those faces.
         centroid: (3,) a point strictly inside the part (mean of its vertices).
+        edge_facets: (E, 2) int64 the facet (a maximal group of coplanar faces) of each of those
+            faces, indices into ``facet_weights``.
+        facet_weights: (F, Vp) float64 each facet's boundary vertices, each weighted one over
+            their count: a facet's row delay under a rolling shutter is the weighted sum of its
+            vertices', the same for every edge that borders it.
     """
 
     vertices: np.ndarray
@@ -42,6 +49,8 @@ class ConvexPart:
     edge_normals: np.ndarray
     edge_offsets: np.ndarray
     centroid: np.ndarray
+    edge_facets: np.ndarray
+    facet_weights: np.ndarray
 
     @staticmethod
     def from_convex_mesh(mesh: trimesh.Trimesh, angle_tol: float = 1e-6) -> "ConvexPart":
@@ -56,7 +65,13 @@ class ConvexPart:
         used, edges = np.unique(edges, return_inverse=True)
         edges = edges.reshape(-1, 2)
         vertices = np.asarray(mesh.vertices[used], dtype=np.float64)
-        return ConvexPart(vertices, edges.astype(np.int64), normals, offsets, vertices.mean(0))
+        # facets: the faces joined across the coplanar adjacencies dropped above
+        joined = adjacency[~keep]
+        graph = coo_matrix((np.ones(len(joined)), (joined[:, 0], joined[:, 1])), shape=(len(mesh.faces),) * 2)
+        _, facet_of = connected_components(graph, directed=False)
+        edge_facets = np.unique(facet_of, return_inverse=True)[1][faces].reshape(-1, 2)
+        return ConvexPart(vertices, edges.astype(np.int64), normals, offsets, vertices.mean(0),
+                          edge_facets.astype(np.int64), _facet_weights(edges, edge_facets, len(vertices)))
 
     @staticmethod
     def from_triangle(triangle: np.ndarray) -> "ConvexPart":
@@ -67,7 +82,18 @@ class ConvexPart:
         edges = np.array([[0, 1], [1, 2], [2, 0]], dtype=np.int64)
         normals = np.broadcast_to(np.stack([normal, -normal]), (3, 2, 3)).copy()
         offsets = np.broadcast_to(np.array([normal @ a, -(normal @ a)]), (3, 2)).copy()
-        return ConvexPart(np.asarray(triangle, np.float64), edges, normals, offsets, triangle.mean(0))
+        edge_facets = np.broadcast_to(np.array([0, 1], dtype=np.int64), (3, 2)).copy()
+        return ConvexPart(np.asarray(triangle, np.float64), edges, normals, offsets, triangle.mean(0),
+                          edge_facets, _facet_weights(edges, edge_facets, 3))
+
+
+def _facet_weights(edges: np.ndarray, edge_facets: np.ndarray, vertices: int) -> np.ndarray:
+    """(F, V) each facet's boundary vertices (the ends of the (E, 2) ``edges`` that border it,
+    ``edge_facets`` (E, 2)), each weighted one over their count."""
+    weights = np.zeros((int(edge_facets.max()) + 1, vertices))
+    for side in range(2):
+        weights[edge_facets[:, side, None], edges] = 1.0
+    return weights / np.maximum(weights.sum(1, keepdims=True), 1.0)
 
 
 @dataclass(frozen=True)
