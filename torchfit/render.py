@@ -197,9 +197,9 @@ def contour_lines(mesh: RenderMesh, camera: Camera, rot: Tensor, trans: Tensor,
 
 
 class _Posed(NamedTuple):
-    """A batch of poses' per-vertex quantities (:func:`_posed`), from which :func:`_contour_edges`
-    finds the contour edges; rows can be taken in slices (:meth:`rows`). No vertex is projected
-    here: only the contour edges' ends are (:func:`_end_pixels`)."""
+    """What a batch of poses' contours need (:func:`_posed`): :func:`_contour_edges` finds the
+    contour edges from it, :func:`_end_pixels` projects their ends; rows can be taken in slices
+    (:meth:`rows`). No vertex is projected here."""
 
     rot: Tensor  # (N, 3, 3) mesh to camera
     trans: Tensor  # (N, 3) metres
