@@ -521,8 +521,8 @@ def test_rolling_shutter_contour_closes_and_its_moments_do_not_depend_on_the_chu
     """Under a rolling shutter (30 µs per row) each part's contour edges form closed loops in
     every pose (every end is shared by exactly two of them), so the exact moments are those of an
     outline and the same whatever the chunking of the poses. Decided at each edge's own time,
-    1-10 % of these poses had an open contour and the moments moved by up to 1e-4 with the
-    chunks (2026-11-29)."""
+    this fails for all three shapes: 1.6-10 % of 2000 such poses had an open contour (a scratch
+    run, 2026-11-29), and a ball's moments moved by up to 1e-4 with the chunks."""
     from collections import Counter
 
     from torchfit.effects import make_effect
