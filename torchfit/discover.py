@@ -443,7 +443,6 @@ class PointsProblem:
         if backcast:
             start_test, start_train = data.split(holdout)
             self.splits["train_backcast"] = (start_train, start_test)
-        self.train, self.test = end_train, end_test
         self.noise_var = float(noise_var) if noise_var is not None else estimate_noise(data)
         self.progress = progress
 

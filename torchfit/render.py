@@ -302,7 +302,7 @@ def _end_pixels(mesh: RenderMesh, camera: Camera, posed: _Posed, edge_idx: Tenso
     the rolling shutter where there is one, projected, then distorted by the lens. Whichever is
     fewer is projected: the contour edges' ends (a ball's mesh, 642 vertices and some 180 ends),
     or every vertex, then gathered (a box's 8 vertices and up to 12 ends)."""
-    n, ends = len(edge_idx), edge_idx.reshape(len(edge_idx), -1)  # (N, M)
+    ends = edge_idx.reshape(len(edge_idx), -1)  # (N, M)
     if ends.shape[1] < len(mesh.vertices):
         if posed.moved is not None:
             points = torch.gather(posed.moved, 1, ends.unsqueeze(-1).expand(-1, -1, 3))  # (N, M, 3)
