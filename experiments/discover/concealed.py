@@ -689,22 +689,25 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
+    # the settings' part of a results folder's name (empty for the settings of the day a set's
+    # first runs were made): the rolling-shutter set's runs carry it as every other set's do
+    settings = (segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
+                                    coverage_clip, fit_exposure, point_spread, exposure_taps,
+                                    coverage_band, shading_fit)
+                + "".join(f"_with_{name}" for name in extra)
+                + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
+                + ("_speednoise" if speed_noise else "")
+                + heldout_suffix(heldout_margin) + robust_suffix(robust)
+                + backcast_suffix(backcast) + edge_suffix(edge_px))
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
-        out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"])
+        out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"] + settings)
     elif shipped:
         out = OUT.with_name("shipped")
     else:
         out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
                             + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
-                            + segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
-                                                  coverage_clip, fit_exposure, point_spread, exposure_taps,
-                                                  coverage_band, shading_fit)
-                            + "".join(f"_with_{name}" for name in extra)
-                            + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
-                            + ("_speednoise" if speed_noise else "")
-                            + heldout_suffix(heldout_margin) + robust_suffix(robust)
-                            + backcast_suffix(backcast) + edge_suffix(edge_px) + variant
+                            + settings + variant
                             + (f"_read_{read_as}" if read_as else "")
                             + ("_lensdeclared" if declare_lens else ""))
     if table_only:
