@@ -570,6 +570,25 @@ def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
     assert conc.segmentation_suffix(1, True, 0.5, None, None, True, exposure_taps=0) == "_albedo1_exposure0.5_taps0_fitted"
 
 
+def test_results_folders_carry_their_settings_on_every_set():
+    """Each set's runs go to a folder named after the set, the masks and the settings: the
+    rolling-shutter set's too (its runs on the masks, before settings had names, keep
+    ``rolling_shutter``), so a rerun on other settings never overwrites the stored one."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    default = (conc.segmentation_suffix(1, True, 0.5, None, None, True, exposure_taps=0)
+               + conc.robust_suffix(2.0) + conc.backcast_suffix(True))
+    assert conc.results_name(default, shutter=True) == "rolling_shutter_albedo1_exposure0.5_taps0_fitted_huber2_backcast"
+    assert conc.results_name("", shutter=True) == "rolling_shutter"
+    assert conc.results_name("", shutter=True, true_masks=True) == "rolling_shutter_true_masks"
+    assert (conc.results_name(default, fresh=3)
+            == "concealed_fresh3_albedo1_exposure0.5_taps0_fitted_huber2_backcast")
+    assert conc.results_name("_with_rolling_shutter", true_masks=True) == "concealed_true_masks_with_rolling_shutter"
+    assert conc.results_name(default, fresh=2, variant="_sharp") == (
+        "concealed_fresh2_albedo1_exposure0.5_taps0_fitted_huber2_backcast_sharp")
+    assert conc.results_name(default, shipped=True) == "shipped"
+
+
 def test_blur_estimates_recover_a_known_exposure():
     """``diagnose.py blur-estimate``'s two pieces on synthetic answers: the ramp width of a ramp
     alone is its length and of a Gaussian alone ``6 sigma / sqrt(pi)``; the along-motion

@@ -676,6 +676,23 @@ def heldout_moves(out: Path, revision: str, points: float = 5.0) -> str:
     return "\n".join(lines + [f"\n{len(lines) - 2} of {compared} candidates' held-out gains moved by >= {points:g} points"])
 
 
+def results_name(settings: str, *, fresh: int = 0, true_masks: bool = False, shipped: bool = False,
+                 shutter: bool = False, chroma_weight: float | None = None, variant: str = "",
+                 read_as: str | None = None, declare_lens: bool = False) -> str:
+    """A run's results folder name under results/: the set (``concealed[_freshK]``, the
+    rolling-shutter set's ``rolling_shutter``, or ``shipped``), the masks, then ``settings``, the
+    suffixes of the run's settings (empty for the settings of the day a set's first runs were made),
+    and the set's variant (``_sharp``, ``_crf4``...). The shipped recordings' runs have one folder."""
+    masks = MASKS["exact" if true_masks else "segmented"]
+    if shipped:
+        return "shipped"
+    if shutter:
+        return "rolling_shutter" + masks + settings
+    return (OUT.name + (f"_fresh{fresh}" if fresh else "") + masks
+            + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
+            + settings + variant + (f"_read_{read_as}" if read_as else "") + ("_lensdeclared" if declare_lens else ""))
+
+
 def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
          shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
@@ -689,8 +706,6 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
-    # the settings' part of a results folder's name (empty for the settings of the day a set's
-    # first runs were made): the rolling-shutter set's runs carry it as every other set's do
     settings = (segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
                                     coverage_clip, fit_exposure, point_spread, exposure_taps,
                                     coverage_band, shading_fit)
@@ -699,17 +714,11 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px))
+    out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
+                                     chroma_weight=chroma_weight, variant=variant, read_as=read_as,
+                                     declare_lens=declare_lens))
     if shutter:  # the rolling-shutter set, with rolling_shutter as one more candidate
         recordings, extra = RECORDINGS.with_name("recordings_shutter"), ("rolling_shutter",)
-        out = OUT.with_name("rolling_shutter" + MASKS["exact" if true_masks else "segmented"] + settings)
-    elif shipped:
-        out = OUT.with_name("shipped")
-    else:
-        out = OUT.with_name(OUT.name + (f"_fresh{fresh}" if fresh else "") + MASKS["exact" if true_masks else "segmented"]
-                            + (f"_chroma{chroma_weight:g}" if chroma_weight is not None else "")
-                            + settings + variant
-                            + (f"_read_{read_as}" if read_as else "")
-                            + ("_lensdeclared" if declare_lens else ""))
     if table_only:
         return print(rebuild(out, recordings))
     if against:
