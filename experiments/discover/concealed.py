@@ -15,6 +15,7 @@
     python experiments/discover/concealed.py --exposure [...]         # the soft coverage against the exposure's average
     python experiments/discover/concealed.py --exposure --coverage-near-px N [...]  # the coverage counted within N px of the mask
     python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
+    python experiments/discover/concealed.py --search-final N [...]  # the baseline search polishes up to N distinct minima
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --transfer T [--read-as R] [...] # the set stored through camera curve T (make_concealed.py --transfer T), segmented as T (or as R)
     python experiments/discover/concealed.py --compare REV [--fresh K] # rows rerun since git REV, before and now
@@ -66,7 +67,7 @@ from torchfit.discover_video import (
 )
 from torchfit.camera import Camera
 from torchfit.effects import EFFECTS
-from torchfit.search import Exposure
+from torchfit.search import Exposure, SearchSettings
 from torchfit.shape import load_shape
 from torchfit.video import TRANSFERS, SegmentationSettings
 
@@ -85,7 +86,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
-            backcast: bool = False) -> dict:
+            backcast: bool = False, search_final: int | None = None) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -101,7 +102,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
-                          speed_noise=speed_noise, robust=robust, backcast=backcast)
+                          speed_noise=speed_noise, robust=robust, backcast=backcast,
+                          search=SearchSettings() if search_final is None else SearchSettings(final=search_final))
 
 
 def robust_suffix(robust: float | None) -> str:
@@ -702,7 +704,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
-         robust: float | None = None, declare_lens: bool = False, backcast: bool = False) -> None:
+         robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
+         search_final: int | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
     recordings = fresh_folder(fresh, sharp, crf, transfer)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
@@ -713,7 +716,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
-                + backcast_suffix(backcast) + edge_suffix(edge_px))
+                + backcast_suffix(backcast) + edge_suffix(edge_px)
+                + (f"_final{search_final}" if search_final is not None else ""))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -743,7 +747,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
-                          backcast=backcast)
+                          backcast=backcast, search_final=search_final)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -800,6 +804,9 @@ if __name__ == "__main__":
     ap.add_argument("--point-spread-prior", type=float, nargs=2, metavar=("M", "S"),
                     help="with --exposure: fit the point spread from M px^2 with a Gaussian prior M ± S px^2 "
                          "(results/concealed..._exposure..._spread<M>pm<S>/)")
+    ap.add_argument("--search-final", type=int, metavar="N",
+                    help="the baseline search polishes up to N distinct minima instead of SearchSettings' "
+                         "default (results/concealed..._final<N>/)")
     ap.add_argument("--baseline-starts", type=int, default=1, metavar="N",
                     help="the baseline's refit from the search's first N candidates, the lowest cost kept "
                          "(VideoProblem(baseline_starts=N); results/concealed..._starts<N>/)")
@@ -922,6 +929,8 @@ if __name__ == "__main__":
                                 + verdict_grid())
         (OUT.parent / "scoreboard.md").write_text(board + "\n")
         sys.exit(print(board))
+    if args.search_final is not None and args.search_final < 1:
+        ap.error(f"--search-final needs at least one minimum, got {args.search_final}")
     if args.baseline_starts < 1:
         ap.error(f"--baseline-starts needs at least one candidate, got {args.baseline_starts}")
     if args.fresh < 0:
@@ -968,4 +977,4 @@ if __name__ == "__main__":
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
-         declare_lens=args.declare_lens, backcast=args.backcast)
+         declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final)
