@@ -830,3 +830,27 @@ def test_segmentation_correlation_reads_shift_size_and_memory():
     t = np.arange(60.0)
     assert module.autocorrelation((-1.0) ** t, 1) < -0.95
     assert module.autocorrelation(np.sin(t / 20), 1) > 0.9
+
+
+def test_search_outcomes_summary_counts_what_the_second_setting_changes():
+    """search_outcomes.py --summary: a loss 2 % above the first setting's is counted worse, one
+    74 % below better (with both rotation errors), one 0.5 % off is the largest other change; the
+    seconds' ratio is the median of the rows'; lines run with other finals are refused."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    so = _load("search_outcomes", CONCEALED.parent / "search_outcomes.py")
+
+    def row(name, loss_a, loss_b, deg_a, deg_b, sec_b):
+        return {"recording": name, "finals": ["6", "12"],
+                "runs": {"12": {"loss": loss_b, "rotation_error_deg": deg_b, "seconds": sec_b},
+                         "6": {"loss": loss_a, "rotation_error_deg": deg_a, "seconds": 10.0}}}
+    rows = [row("a", 1.0, 1.02, 1.0, 1.0, 11.0), row("b", 1.0, 0.26, 17.3, 1.0, 12.0),
+            row("c", 1.0, 1.005, 6.0, 6.0, 14.0), row("d", 1.0, 1.0, 1.0, 1.0, 13.0)]
+    text = so.summary(rows)
+    assert "more than 1 % above: 1 ['a']" in text
+    assert "more than 1 % below: 1 b (-74.0 %: 17.3° → 1.0°)" in text
+    assert "within 0.001 %: 1" in text
+    assert "the largest other change: c (+0.500 %)" in text
+    assert "from the truth: 2 ['b', 'c']" in text
+    assert "median 1.25 (range 1.10–1.40)" in text
+    with pytest.raises(ValueError, match="same two finals"):
+        so.summary(rows + [{**rows[0], "finals": ["6", "9"]}])
