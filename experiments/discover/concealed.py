@@ -118,6 +118,12 @@ def backcast_suffix(backcast: bool) -> str:
     return "_backcast" if backcast else ""
 
 
+def final_suffix(final: int | None) -> str:
+    """The results folder's suffix of a run whose search polishes up to ``final`` distinct minima
+    (none for ``SearchSettings``' own)."""
+    return "" if final is None else f"_final{final}"
+
+
 def heldout_suffix(margin: float | None) -> str:
     """The results folder's suffix of a run whose held-out test is the predictive deviance within
     ``margin`` (none for the default rule)."""
@@ -717,7 +723,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + (f"_final{search_final}" if search_final is not None else ""))
+                + final_suffix(search_final))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -857,6 +863,7 @@ if __name__ == "__main__":
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
     variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
+    variant += final_suffix(args.search_final)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -870,7 +877,7 @@ if __name__ == "__main__":
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
                             or args.linear_shading or args.speed_noise or args.heldout_margin is not None
-                            or args.robust is not None or args.backcast):
+                            or args.robust is not None or args.backcast or args.search_final is not None):
         if variant:
             suffix = variant
             against = ("the exposure" if args.exposure_fraction is None
@@ -892,14 +899,17 @@ if __name__ == "__main__":
                        + ([f"held-out deviance within {args.heldout_margin:g}"] if args.heldout_margin is not None
                           else [])
                        + ([f"Huber's loss at {args.robust:g}"] if args.robust is not None else [])
-                       + (["the first quarter backcast as well"] if args.backcast else []))
+                       + (["the first quarter backcast as well"] if args.backcast else [])
+                       + ([f"the search polishing up to {args.search_final} minima"]
+                          if args.search_final is not None else []))
             label = ", ".join(path_parts + options)
-            # an option on another path: against that path without it; the backcast against the
-            # same run without it (every other option kept)
-            path = (variant.removesuffix(backcast_suffix(True)) if args.backcast else
+            # an option on another path: against that path without it; the backcast or the
+            # search's final against the same run without it (every other option kept)
+            last_only = args.backcast or args.search_final is not None
+            path = (variant.removesuffix(final_suffix(args.search_final) or backcast_suffix(True)) if last_only else
                     variant.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
                     .removesuffix("_speednoise") if options else "")
-            base_label = ", ".join(path_parts + (options[:-1] if args.backcast else []))
+            base_label = ", ".join(path_parts + (options[:-1] if last_only else []))
             text = side_by_side(suffix, label, column="segmentation", base=path,
                                 base_label=base_label if path else "default")
         elif args.crf is not None:
