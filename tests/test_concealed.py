@@ -587,6 +587,9 @@ def test_results_folders_carry_their_settings_on_every_set():
     assert conc.results_name(default, fresh=2, variant="_sharp") == (
         "concealed_fresh2_albedo1_exposure0.5_taps0_fitted_huber2_backcast_sharp")
     assert conc.results_name(default, shipped=True) == "shipped"
+    assert conc.results_name(default + conc.final_suffix(12), fresh=4) == (
+        "concealed_fresh4_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12")
+    assert conc.final_suffix(None) == ""
 
 
 def test_blur_estimates_recover_a_known_exposure():
