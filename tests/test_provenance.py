@@ -40,3 +40,6 @@ def test_provenance_names_the_libraries(tmp_path):
     assert made["source"] is None and made["source_sha256"] is None and made["masks_sha256"] is None
     assert made["packages"]["torch"] == torch.__version__ and made["packages"]["numpy"] == np.__version__
     assert made["revision"] is None or isinstance(made["revision"], str)
+    assert made["machine"]["torch_threads"] == torch.get_num_threads()
+    assert made["machine"]["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert isinstance(made["machine"]["cpu"], str) and made["machine"]["cpu"]

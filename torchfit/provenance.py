@@ -17,7 +17,8 @@ import numpy as np
 
 __all__ = ["provenance", "file_digest", "masks_digest"]
 
-PACKAGES = ("torchfit", "torch", "torchdiffeq", "kornia", "numpy", "opencv-python-headless", "trimesh", "hydra-core")
+PACKAGES = ("torchfit", "torch", "torchdiffeq", "kornia", "numpy", "scipy", "opencv-python-headless", "trimesh",
+            "hydra-core")
 
 
 def file_digest(path: str | Path) -> str | None:
@@ -83,7 +84,11 @@ def provenance(source: str | Path | None = None, masks=None) -> dict:
 
     Returns:
         ``{"source": str | None, "source_sha256": str | None, "masks_sha256": str | None,
-        "revision": str | None, "python": str, "packages": {name: version | None}}``.
+        "revision": str | None, "python": str, "packages": {name: version | None},
+        "machine": {"cpu": str, "torch_cpu_capability": str, "torch_threads": int}}``: the
+        processor, the vector instructions torch's kernels use and its threads, because the same
+        inputs and libraries on another processor or thread count round differently and an
+        ill-conditioned fit can end elsewhere.
     """
     return {
         "source": None if source is None else str(source),
@@ -92,4 +97,23 @@ def provenance(source: str | Path | None = None, masks=None) -> dict:
         "revision": _revision(),
         "python": platform.python_version(),
         "packages": {name: _version(name) for name in PACKAGES},
+        "machine": _machine(),
     }
+
+
+def _machine() -> dict:
+    import torch
+
+    return {"cpu": _cpu_name(), "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "torch_threads": torch.get_num_threads()}
+
+
+def _cpu_name() -> str:
+    """The processor's model name (Linux's /proc/cpuinfo), else what :mod:`platform` says."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
