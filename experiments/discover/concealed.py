@@ -301,7 +301,8 @@ def score_line(counts: dict) -> str:
 # fresh sets 3 and 4 were made and run on 2026-11-26 (sixth session), fresh set 5 in the tenth, once
 # each, with no rule that decides a verdict changed after: the sets no choice has seen
 SETS = {"first": "concealed", "fresh 1": "concealed_fresh1", "fresh 2": "concealed_fresh2",
-        "fresh 3": "concealed_fresh3", "fresh 4": "concealed_fresh4", "fresh 5": "concealed_fresh5"}
+        "fresh 3": "concealed_fresh3", "fresh 4": "concealed_fresh4", "fresh 5": "concealed_fresh5",
+        "fresh 6": "concealed_fresh6", "fresh 7": "concealed_fresh7"}
 # the exact masks' own edge term of the noise floor (calibrate_noise.py --true-masks: with the
 # refits' exact moments, 2026-11-26, the rule gives 0.01 px; with the soft render's moments it gave
 # 0.03 px, whose runs are kept as a row of their own); the exact-mask runs at EDGE_PX (0.1, the
