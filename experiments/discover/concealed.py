@@ -118,10 +118,15 @@ def backcast_suffix(backcast: bool) -> str:
     return "_backcast" if backcast else ""
 
 
+FIRST_FINAL = 6  # SearchSettings.final when every set's first runs were made
+
+
 def final_suffix(final: int | None) -> str:
     """The results folder's suffix of a run whose search polishes up to ``final`` distinct minima
-    (none for ``SearchSettings``' own)."""
-    return "" if final is None else f"_final{final}"
+    (None: ``SearchSettings``' own): none for :data:`FIRST_FINAL`, so a folder names the final
+    its runs used whatever the day's default."""
+    final = SearchSettings().final if final is None else final
+    return "" if final == FIRST_FINAL else f"_final{final}"
 
 
 def heldout_suffix(margin: float | None) -> str:
@@ -900,17 +905,22 @@ if __name__ == "__main__":
                        + ([f"held-out deviance within {args.heldout_margin:g}"] if args.heldout_margin is not None
                           else [])
                        + ([f"Huber's loss at {args.robust:g}"] if args.robust is not None else [])
-                       + (["the first quarter backcast as well"] if args.backcast else [])
-                       + ([f"the search polishing up to {args.search_final} minima"]
-                          if args.search_final is not None else []))
-            label = ", ".join(path_parts + options)
-            # an option on another path: against that path without it; the backcast or the
-            # search's final against the same run without it (every other option kept)
-            last_only = args.backcast or args.search_final is not None
-            path = (variant.removesuffix(final_suffix(args.search_final) or backcast_suffix(True)) if last_only else
-                    variant.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
-                    .removesuffix("_speednoise") if options else "")
-            base_label = ", ".join(path_parts + (options[:-1] if last_only else []))
+                       + (["the first quarter backcast as well"] if args.backcast else []))
+            final = final_suffix(args.search_final)
+            searched = [f"the search polishing up to {final.removeprefix('_final')} minima"] if final else []
+            label = ", ".join(path_parts + options + searched)
+            # an option on another path: against that path without it; the backcast or a final
+            # asked for against the same runs without it (every other option, and the search, kept)
+            core = variant.removesuffix(final)
+            if final and args.search_final is not None:  # against the first runs' search
+                path, base_options = core, options
+            elif args.backcast:
+                path, base_options = core.removesuffix(backcast_suffix(True)) + final, options[:-1] + searched
+            else:
+                path = (core.removesuffix(robust_suffix(args.robust)).removesuffix(heldout_suffix(args.heldout_margin))
+                        .removesuffix("_speednoise") + final if options else "")
+                base_options = searched
+            base_label = ", ".join(path_parts + base_options)
             text = side_by_side(suffix, label, column="segmentation", base=path,
                                 base_label=base_label if path else "default")
         elif args.crf is not None:
