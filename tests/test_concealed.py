@@ -17,6 +17,8 @@ import numpy as np
 import pytest
 import torch
 
+from torchfit.search import SearchSettings
+
 ROOT = Path(__file__).resolve().parents[1]
 RECORDINGS = ROOT / "experiments" / "recordings"
 CONCEALED = ROOT / "experiments" / "discover" / "make_concealed.py"
@@ -589,7 +591,8 @@ def test_results_folders_carry_their_settings_on_every_set():
     assert conc.results_name(default, shipped=True) == "shipped"
     assert conc.results_name(default + conc.final_suffix(12), fresh=4) == (
         "concealed_fresh4_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12")
-    assert conc.final_suffix(None) == ""
+    assert conc.final_suffix(6) == ""  # the first runs' search: their folders keep their names
+    assert conc.final_suffix(None) == conc.final_suffix(SearchSettings().final) == "_final12"
 
 
 def test_blur_estimates_recover_a_known_exposure():

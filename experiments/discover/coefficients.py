@@ -15,7 +15,7 @@ freedom when the noise floors are right in that candidate's direction).
     python experiments/discover/coefficients.py SUFFIX [--fresh K ...] [--each] [--unselected]
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>``
-(``_albedo1_exposure0.5_taps0_fitted_huber2_backcast`` for the default path, '' for the masks); the
+(``_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12`` for the default path, '' for the masks); the
 six sets unless ``--fresh`` names others (0 the first); ``--each`` lists every recording.
 """
 
@@ -92,7 +92,7 @@ def summary(rows: list[tuple[str, str, float, float, float]]) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("suffix", help="results folder suffix (_albedo1_exposure0.5_taps0_fitted_huber2_backcast for the default "
+    ap.add_argument("suffix", help="results folder suffix (_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12 for the default "
                                    "path, '' for the masks)")
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K", help="these sets instead of the six (0 the first)")
     ap.add_argument("--each", action="store_true", help="list every recording's ratio and z")

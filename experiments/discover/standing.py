@@ -20,8 +20,9 @@ From the stored runs of one variant (no fitting), over the sets asked for:
     python experiments/discover/standing.py SUFFIX [--fresh K ...] [--each]
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>``
-(``_albedo1_exposure0.5_taps0_fitted_huber2_backcast`` for the default,
-``_albedo1_exposure0.5_taps0_fitted_huber2`` for it without the backcast, '' for the masks); the seven
+(``_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12`` for the default,
+``_albedo1_exposure0.5_taps0_fitted_huber2_backcast`` for it with the search's ``final=6`` of
+before 2026-11-29, ``_albedo1_exposure0.5_taps0_fitted_huber2`` without the backcast, '' for the masks); the seven
 blurred sets (the first and fresh 1-6) unless ``--fresh`` names others (0 the first); ``--each``
 lists every scalar case's ratio.
 """
@@ -40,7 +41,7 @@ from concealed import limit_ratio, outcomes, row, score, verdict_grid  # noqa: E
 from true_masks import fresh_folder  # noqa: E402
 
 SEVEN = (0, 1, 2, 3, 4, 5, 6)
-DEFAULT_SUFFIX = "_albedo1_exposure0.5_taps0_fitted_huber2_backcast"
+DEFAULT_SUFFIX = "_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12"
 # the ratio's bins (true departure / the run's limit), each [low, high)
 BINS = ((0.0, 0.5), (0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, float("inf")))
 
