@@ -13,8 +13,9 @@ on the polish's objective, its rotation error at t = 0 modulo the shape's symmet
 meaningless for a ball, whose orientation the silhouette does not show, so ``--no-balls`` leaves
 them out), its spin, and the search's seconds; and the true spin. ``--albedo-passes N``: segment
 with ``SegmentationSettings.albedo_passes`` N (1 is what discover does by default; 0, the
-segmentation's own default, when not given). ``--only a,b``: those recordings of each set. ``--summary`` reads OUT.jsonl written with two
-finals and prints how the second compares with the first. To compare two revisions, run it in a
+segmentation's own default, when not given). ``--only a,b``: those recordings of each set.
+``--summary`` reads OUT.jsonl written with two finals and prints how the second compares with
+the first. To compare two revisions, run it in a
 worktree of each (``git worktree add /tmp/old REV``, then ``PYTHONPATH=/tmp/old python
 experiments/discover/search_outcomes.py old.jsonl``).
 """
@@ -43,7 +44,8 @@ LOST_DEG = 5.0  # a best candidate farther than this from the true orientation i
 def outcome(folder: Path, finals: list[int | None], albedo_passes: int | None = None, first: int = 0) -> dict:
     """The search's best candidate on ``folder``'s segmented video with each of ``finals``
     (``SearchSettings.final``; None: the default), run in turn starting from ``finals[first]``,
-    against its truth.json: ``{"recording", "true_spin", "runs": {str(final): {...}}}``."""
+    against its truth.json: ``{"recording", "shape", "true_spin", "finals": [str(final), ...] in
+    the order asked for, "runs": {str(final): {"loss", "rotation_error_deg", "spin", "seconds"}}}``."""
     truth, shape, camera = recording_parts(folder)
     settings = None if albedo_passes is None else SegmentationSettings(albedo_passes=albedo_passes)
     _, problem, _ = load_problem(folder, shape, camera, False, settings)
