@@ -43,3 +43,10 @@ def test_provenance_names_the_libraries(tmp_path):
     assert made["machine"]["torch_threads"] == torch.get_num_threads()
     assert made["machine"]["torch_cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     assert isinstance(made["machine"]["cpu"], str) and made["machine"]["cpu"]
+
+
+def test_provenance_records_the_variables_that_pick_the_math_kernels(monkeypatch):
+    monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")
+    monkeypatch.delenv("ATEN_CPU_CAPABILITY", raising=False)
+    env = provenance(None, None)["machine"]["numerics_env"]
+    assert env["MKL_CBWR"] == "COMPATIBLE" and env["ATEN_CPU_CAPABILITY"] is None

@@ -8,6 +8,7 @@ segmentation or another release of a library gives other numbers. ``result.json`
 from __future__ import annotations
 
 import hashlib
+import os
 import platform
 import subprocess
 from importlib import metadata
@@ -17,6 +18,9 @@ import numpy as np
 
 __all__ = ["provenance", "file_digest", "masks_digest"]
 
+# environment variables that pick the math kernels (MKL's code path, torch's vector instructions)
+# or their threads: the same run under other values rounds differently
+NUMERICS_ENV = ("MKL_CBWR", "ATEN_CPU_CAPABILITY", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_CORETYPE")
 PACKAGES = ("torchfit", "torch", "torchdiffeq", "kornia", "numpy", "scipy", "opencv-python-headless", "trimesh",
             "hydra-core")
 
@@ -85,10 +89,11 @@ def provenance(source: str | Path | None = None, masks=None) -> dict:
     Returns:
         ``{"source": str | None, "source_sha256": str | None, "masks_sha256": str | None,
         "revision": str | None, "python": str, "packages": {name: version | None},
-        "machine": {"cpu": str, "torch_cpu_capability": str, "torch_threads": int}}``: the
-        processor, the vector instructions torch's kernels use and its threads, because the same
-        inputs and libraries on another processor or thread count round differently and an
-        ill-conditioned fit can end elsewhere.
+        "machine": {"cpu": str, "torch_cpu_capability": str, "torch_threads": int,
+        "numerics_env": {name: value | None}}}``: the processor, the vector instructions torch's
+        kernels use, its threads and the environment variables that choose its math kernels
+        (:data:`NUMERICS_ENV`), because the same inputs and libraries on another processor or
+        with other kernels round differently and an ill-conditioned fit can end elsewhere.
     """
     return {
         "source": None if source is None else str(source),
@@ -105,7 +110,8 @@ def _machine() -> dict:
     import torch
 
     return {"cpu": _cpu_name(), "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
-            "torch_threads": torch.get_num_threads()}
+            "torch_threads": torch.get_num_threads(),
+            "numerics_env": {name: os.environ.get(name) for name in NUMERICS_ENV}}
 
 
 def _cpu_name() -> str:
