@@ -41,9 +41,9 @@ SETS = ("recordings", "recordings_fresh1", "recordings_fresh2", "recordings_shar
 LOST_DEG = 5.0  # a best candidate farther than this from the true orientation is counted as off
 
 
-def outcome(folder: Path, finals: list[int | None], albedo_passes: int | None = None, first: int = 0) -> dict:
+def outcome(folder: Path, finals: list[int], albedo_passes: int | None = None, first: int = 0) -> dict:
     """The search's best candidate on ``folder``'s segmented video with each of ``finals``
-    (``SearchSettings.final``; None: the default), run in turn starting from ``finals[first]``,
+    (``SearchSettings.final``), run in turn starting from ``finals[first]``,
     against its truth.json: ``{"recording", "shape", "true_spin", "finals": [str(final), ...] in
     the order asked for, "runs": {str(final): {"loss", "rotation_error_deg", "spin", "seconds"}}}``."""
     truth, shape, camera = recording_parts(folder)
@@ -54,16 +54,15 @@ def outcome(folder: Path, finals: list[int | None], albedo_passes: int | None = 
     runs = {}
     for final in finals[first:] + finals[:first]:
         clock = time.perf_counter()
-        result = fit(problem, SearchSettings() if final is None else SearchSettings(final=final), progress=None)
+        result = fit(problem, SearchSettings(final=final), progress=None)
         seconds = time.perf_counter() - clock
         rot = quat_to_matrix(result.candidates.quat()[:1].double())[0]
         error = rotation_angle(rot @ symmetries, true_rot)  # (K,) per symmetry
-        runs[str(SearchSettings().final if final is None else final)] = {
+        runs[str(final)] = {
             "loss": float(result.losses[0]), "rotation_error_deg": float(torch.rad2deg(error).min()),
             "spin": result.candidates.omega[0].tolist(), "seconds": seconds}
-    order = [str(SearchSettings().final if f is None else f) for f in finals]
     return {"recording": f"{folder.parent.name}/{folder.name}", "shape": truth["shape"],
-            "true_spin": truth["params"]["angular_velocity"], "finals": order, "runs": runs}
+            "true_spin": truth["params"]["angular_velocity"], "finals": [str(f) for f in finals], "runs": runs}
 
 
 def summary(rows: list[dict]) -> str:
@@ -99,9 +98,10 @@ def _deg(rows: list[dict], name: str, final: str) -> str:
     return f"{row['runs'][final]['rotation_error_deg']:.1f}°"
 
 
-def _finals(text: str | None) -> list[int | None]:
+def _finals(text: str | None) -> list[int]:
+    """``--final``'s values; ``SearchSettings``' own when not given."""
     if text is None:
-        return [None]
+        return [SearchSettings().final]
     try:
         finals = [int(v) for v in text.split(",")]
     except ValueError:
