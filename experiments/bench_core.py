@@ -5,13 +5,18 @@ Measures
      forward + backward (to leaf ``rot`` and ``trans``), at several crop sizes and batch sizes,
      with eager and ``torch.compile``d pixel loops side by side;
   2. ``simulate`` (RK4, default sub-steps), seconds per call, forward and forward + backward;
-  3. the environment.
+  3. a ball drawn as its sphere against the same ball drawn as its mesh (the concealed
+     recordings' 642-vertex icosphere), side by side in one process: the exact moments in
+     float64, the soft coverage forward + backward in float32, and each one's error against the
+     sphere's true silhouette (the ellipse of the cone that touches it);
+  4. the environment.
 
 Prints a table and writes JSON. ``--quick`` is a seconds-long smoke run (used by the tests).
 
     python experiments/bench_core.py                    # full run, experiments/bench_core.json
     python experiments/bench_core.py --quick --no-compile --out /tmp/quick.json
     python experiments/bench_core.py --profile          # also: torch.profiler of one eager call
+    python experiments/bench_core.py --sections ball --out experiments/bench_ball.json  # the ball alone
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from torchfit.rotation import quat_to_matrix
 from torchfit.shape import load_shape
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "bench_core.json"
+SECTIONS = ("render", "integrator", "ball")
 CAMERA = Camera(500.0, 500.0, 319.5, 239.5, 640, 480)
 DEPTH = 2.0  # metres, T-handle in front of the camera
 SIGMA = 1.0  # crop pixels
@@ -283,6 +289,90 @@ def bench_integrator(candidates: int, frames: int, fps: float, device: str, repe
     }
 
 
+def _ellipse_moments(centres: torch.Tensor, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) area and (N, 2) centroid, pixels, of the silhouettes of spheres of ``radius`` at the
+    (N, 3) camera-frame ``centres``: the ellipse ``(p · c)² = (|c|² - r²) |p|²`` on the image."""
+    g = centres[:, 2] ** 2 - radius**2
+    h = (centres * centres).sum(-1) - radius**2
+    centre = centres[:, :2] * (centres[:, 2] / g).unsqueeze(-1)
+    # semi-axes: r √h / g along the centre's direction on the image, r / √g across it
+    area = torch.pi * radius**2 * h.sqrt() / g**1.5 * CAMERA.fx * CAMERA.fy
+    focal = centres.new_tensor([CAMERA.fx, CAMERA.fy])
+    return area, centre * focal + centres.new_tensor([CAMERA.cx, CAMERA.cy])
+
+
+def bench_ball(n_moments: int, n_coverage: int, size: int, device: str, repeats: int, budget_s: float,
+               seed: int = 0) -> dict:
+    """A 3.3 cm ball (the concealed recordings' icosphere, 642 vertices) 1.5-2.5 m away, drawn
+    as its sphere (``RenderMesh.sphere``) and as its mesh (the same with ``sphere=None``),
+    alternating: seconds of ``silhouette_moments`` (float64, ``n_moments`` poses) and of
+    ``render_silhouettes`` forward + backward (float32, ``n_coverage`` poses in ``size``² crops),
+    and each one's largest error against the true sphere's ellipse."""
+    import dataclasses
+
+    shape = load_shape(primitive="sphere", dims={"radius": 0.033, "subdivisions": 3}, density=380.0)
+    radius = 0.033
+    gen = torch.Generator().manual_seed(seed)
+    count = max(n_moments, n_coverage)
+    rot = quat_to_matrix(uniform_quaternions(count, gen, torch.float64))
+    offset = torch.empty(count, 3, dtype=torch.float64).uniform_(-1.0, 1.0, generator=gen)
+    trans = torch.tensor([0.0, 0.0, DEPTH], dtype=torch.float64) + offset * torch.tensor([0.5, 0.4, 0.5],
+                                                                                          dtype=torch.float64)
+    true_area, true_centre = _ellipse_moments(trans, radius)
+    out = {"radius_m": radius, "mesh_vertices": len(shape.mesh.vertices), "moments_poses": n_moments,
+           "coverage_poses": n_coverage, "crop": size}
+    meshes = {}
+    for dtype in (torch.float64, torch.float32):
+        sphere = render.RenderMesh.from_shape(shape, dtype, device)
+        meshes[dtype] = {"sphere": sphere, "mesh": dataclasses.replace(sphere, sphere=None)}
+    r64, t64 = rot[:n_moments].to(device), trans[:n_moments].to(device)
+    half = (true_area[:n_coverage] / torch.pi).sqrt()  # pixels, the ball's equal-area radius
+    boxes = torch.cat((true_centre[:n_coverage] - half[:, None], true_centre[:n_coverage] + half[:, None]), -1)
+    windows = render.crop_windows(boxes, (size, size)).to(torch.float32).unsqueeze(0).to(device)
+    r32 = rot[:n_coverage].to(torch.float32).unsqueeze(0).to(device)
+    t32 = trans[:n_coverage].to(torch.float32).unsqueeze(0).to(device)
+    with torch.no_grad():
+        target = render.render_silhouettes(meshes[torch.float32]["sphere"], CAMERA, r32, t32 + 0.002, windows,
+                                           size=(size, size), sigma=None)
+    timings = {name: {"moments": [], "coverage": []} for name in ("sphere", "mesh")}
+    render.set_compile(False)
+    for name in ("sphere", "mesh"):  # accuracy, and a warm-up of each
+        with torch.no_grad():
+            area, centre, _ = render.silhouette_moments(meshes[torch.float64][name], CAMERA, r64, t64)
+        out[name] = {"area_error_max": float(((area.cpu() - true_area[:n_moments]) / true_area[:n_moments]).abs().max()),
+                     "centroid_error_max_px": float((centre.cpu() - true_centre[:n_moments]).norm(dim=-1).max())}
+    leaves = {}
+
+    def coverage_call(name):
+        rot_leaf, trans_leaf = r32.clone().requires_grad_(True), t32.clone().requires_grad_(True)
+        cover = render.render_silhouettes(meshes[torch.float32][name], CAMERA, rot_leaf, trans_leaf, windows,
+                                          size=(size, size), sigma=SIGMA)
+        (cover - target).square().sum().backward()
+        leaves[name] = bool(torch.isfinite(trans_leaf.grad).all())
+
+    snap = _cpu_snapshot()
+    spent = 0.0
+    for repeat in range(repeats):
+        for name in (("sphere", "mesh") if repeat % 2 == 0 else ("mesh", "sphere")):
+            with torch.no_grad():
+                seconds = _time_call(lambda: render.silhouette_moments(meshes[torch.float64][name], CAMERA, r64, t64),
+                                     device)
+            timings[name]["moments"].append(seconds)
+            timings[name]["coverage"].append(_time_call(lambda: coverage_call(name), device))
+            spent += seconds + timings[name]["coverage"][-1]
+        if repeat >= 2 and spent > budget_s:
+            break
+    for name in ("sphere", "mesh"):
+        out[name].update({"moments_median_s": statistics.median(timings[name]["moments"]),
+                          "coverage_fwd_bwd_median_s": statistics.median(timings[name]["coverage"]),
+                          "repeats": len(timings[name]["moments"]), "grads_finite": leaves[name]})
+    out["moments_mesh_over_sphere"] = out["mesh"]["moments_median_s"] / out["sphere"]["moments_median_s"]
+    out["coverage_mesh_over_sphere"] = (out["mesh"]["coverage_fwd_bwd_median_s"]
+                                        / out["sphere"]["coverage_fwd_bwd_median_s"])
+    out["other_cores"] = _other_cores(snap, _cpu_snapshot())
+    return out
+
+
 def environment(device: str) -> dict:
     cpu = None
     try:
@@ -337,7 +427,41 @@ def profile_render(device: str, n: int = 1024, size: int = 64, rows: int = 15) -
 
 def format_table(result: dict) -> str:
     lines = []
-    rend = result["render"]
+    if "render" in result:
+        lines += _render_table(result["render"])
+    if "integrator" in result:
+        integ = result["integrator"]
+        mark = " †" if (integ.get("other_cores") or 0.0) > CONTAMINATED else ""
+        lines += ["", "| integrator | candidates | frames @ fps | RK4 steps | forward s | fwd+bwd s |",
+                  "|---|---|---|---|---|---|",
+                  f"| rk4 float32 | {integ['candidates']} | {integ['frames']} @ {integ['fps']:g} | "
+                  f"{integ['rk4_steps']} | {integ['forward_s']:.3f}{mark} | {integ['fwd_bwd_s']:.3f}{mark} |"]
+    if "ball" in result:
+        ball = result["ball"]
+        mark = " †" if (ball.get("other_cores") or 0.0) > CONTAMINATED else ""
+        lines += ["", f"| a ball drawn as | exact moments, {ball['moments_poses']} poses, s | soft coverage "
+                      f"fwd+bwd, {ball['coverage_poses']} x {ball['crop']}², s | area error, max | "
+                      f"centroid error, max px |", "|---|---|---|---|---|"]
+        for name, label in (("sphere", "its sphere"), ("mesh", f"its mesh ({ball['mesh_vertices']} vertices)")):
+            row = ball[name]
+            lines.append(f"| {label} | {row['moments_median_s']:.4f}{mark} | {row['coverage_fwd_bwd_median_s']:.4f}{mark} "
+                         f"| {row['area_error_max']:.1e} | {row['centroid_error_max_px']:.1e} |")
+        lines.append(f"| mesh / sphere | {ball['moments_mesh_over_sphere']:.2f} | "
+                     f"{ball['coverage_mesh_over_sphere']:.2f} | | |")
+    others = [c["other_cores"] for c in result.get("render", {}).get("cases", [])
+              + [result[k] for k in ("integrator", "ball") if k in result] if c.get("other_cores") is not None]
+    if others:
+        lines += ["", f"CPU cores used by other processes while timing: at most {max(others):.2f} "
+                      f"(median {statistics.median(others):.2f}); near 0 means clean timings; "
+                      f"† marks cases where other processes used more than {CONTAMINATED} cores."]
+    env = result["env"]
+    lines += ["", f"torch {env['torch']}, device {env['device']}, {env['threads']} threads, "
+                  f"CPU {env['cpu_model']}, {env['date']}"]
+    return "\n".join(lines)
+
+
+def _render_table(rend: dict) -> list[str]:
+    lines = []
     by = {(c["mode"], c["size"], c["n"]): c for c in rend["cases"]}
     modes = [m for m in ("eager", "compiled") if any(k[0] == m for k in by)]
     sizes = sorted({c["size"] for c in rend["cases"]})
@@ -368,21 +492,7 @@ def format_table(result: dict) -> str:
         lines.append("")
         lines.append(f"One-off compilation (set_compile probe + warm-up excess, all cases): "
                      f"{rend['compile_overhead_s']:.1f} s; compile active: {rend['compile_active']}")
-    integ = result["integrator"]
-    mark = " †" if (integ.get("other_cores") or 0.0) > CONTAMINATED else ""
-    lines += ["", "| integrator | candidates | frames @ fps | RK4 steps | forward s | fwd+bwd s |",
-              "|---|---|---|---|---|---|",
-              f"| rk4 float32 | {integ['candidates']} | {integ['frames']} @ {integ['fps']:g} | "
-              f"{integ['rk4_steps']} | {integ['forward_s']:.3f}{mark} | {integ['fwd_bwd_s']:.3f}{mark} |"]
-    others = [c["other_cores"] for c in rend["cases"] + [integ] if c.get("other_cores") is not None]
-    if others:
-        lines += ["", f"CPU cores used by other processes while timing: at most {max(others):.2f} "
-                      f"(median {statistics.median(others):.2f}); near 0 means clean timings; "
-                      f"† marks cases where other processes used more than {CONTAMINATED} cores."]
-    env = result["env"]
-    lines += ["", f"torch {env['torch']}, device {env['device']}, {env['threads']} threads, "
-                  f"CPU {env['cpu_model']}, {env['date']}"]
-    return "\n".join(lines)
+    return lines
 
 
 def main(argv=None) -> dict:
@@ -402,6 +512,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--max-pixels", type=int, default=None,
                         help="skip render cases with N * H * W above this (e.g. 4096 at 128x128)")
     parser.add_argument("--threads", type=int, default=None, help="torch.set_num_threads")
+    parser.add_argument("--sections", nargs="+", choices=SECTIONS, default=list(SECTIONS),
+                        help="what to measure (default: all)")
     args = parser.parse_args(argv)
 
     if args.threads:
@@ -414,17 +526,24 @@ def main(argv=None) -> dict:
     modes = ["eager"] if args.no_compile else ["eager", "compiled"]
 
     result = {"env": environment(device),
-              "config": {"quick": args.quick, "sizes": sizes, "batches": batches, "repeats": repeats,
+              "config": {"quick": args.quick, "sections": args.sections, "sizes": sizes, "batches": batches,
+                         "repeats": repeats,
                          "modes": modes, "argv": list(sys.argv[1:] if argv is None else argv)}}
     load = result["env"]["load_average_1min_at_start"]
     if load is not None and load > 0.5 and not device.startswith("cuda"):
         print(f"warning: 1-minute load average {load:.2f} at start; CPU timings will be distorted "
               f"by other processes", flush=True)
-    print(f"render: sizes {sizes}, batches {batches}, modes {modes}, device {device}", flush=True)
-    result["render"] = bench_render(sizes, batches, modes, device, repeats, args.budget,
-                                    log=lambda s: print(s, flush=True), max_pixels=args.max_pixels)
-    print(f"integrator: {candidates} candidates", flush=True)
-    result["integrator"] = bench_integrator(candidates, 40, 30.0, device, repeats, args.budget)
+    if "render" in args.sections:
+        print(f"render: sizes {sizes}, batches {batches}, modes {modes}, device {device}", flush=True)
+        result["render"] = bench_render(sizes, batches, modes, device, repeats, args.budget,
+                                        log=lambda s: print(s, flush=True), max_pixels=args.max_pixels)
+    if "integrator" in args.sections:
+        print(f"integrator: {candidates} candidates", flush=True)
+        result["integrator"] = bench_integrator(candidates, 40, 30.0, device, repeats, args.budget)
+    if "ball" in args.sections:
+        print("ball: drawn as its sphere and as its mesh", flush=True)
+        result["ball"] = bench_ball(200 if args.quick else 20000, 16 if args.quick else 1024, 64, device,
+                                    3 if args.quick else max(repeats, 5), args.budget)
     if args.profile:
         result["profile_eager_1024x64"] = profile_render(device)
     print()

@@ -32,7 +32,7 @@ def test_quick_run_writes_expected_json(bench, tmp_path):
         render.set_compile(False)
     data = json.loads(out.read_text())
     assert data == json.loads(json.dumps(returned))
-    assert set(data) >= {"env", "config", "render", "integrator"}
+    assert set(data) >= {"env", "config", "render", "integrator", "ball"}
 
     env = data["env"]
     for key in ("torch", "device", "threads", "cpu_model", "date"):
@@ -52,6 +52,16 @@ def test_quick_run_writes_expected_json(bench, tmp_path):
         assert _positive(integ[key]), key
     assert integ["grads_finite"] is True
 
+    ball = data["ball"]
+    for name in ("sphere", "mesh"):
+        for key in ("moments_median_s", "coverage_fwd_bwd_median_s"):
+            assert _positive(ball[name][key]), (name, key)
+        assert ball[name]["grads_finite"] is True
+    # the sphere is the true silhouette to rounding; the mesh's facets are not
+    assert ball["sphere"]["area_error_max"] < 1e-9 and ball["sphere"]["centroid_error_max_px"] < 1e-9
+    assert ball["mesh"]["area_error_max"] > 1e-4
+    assert _positive(ball["moments_mesh_over_sphere"]) and _positive(ball["coverage_mesh_over_sphere"])
+
 
 def test_poses_are_in_view_and_windows_cover_them(bench):
     import torch
@@ -69,3 +79,10 @@ def test_poses_are_in_view_and_windows_cover_them(bench):
     assert bool((area > 0.02).all())
     border = torch.cat((hard[..., 0, :], hard[..., -1, :], hard[..., :, 0], hard[..., :, -1]), dim=-1)
     assert float(border.max()) == 0.0
+
+
+def test_sections_measure_only_what_is_asked(bench, tmp_path):
+    out = tmp_path / "ball.json"
+    data = bench.main(["--quick", "--no-compile", "--device", "cpu", "--sections", "ball", "--out", str(out)])
+    assert set(data) == {"env", "config", "ball"} and data["config"]["sections"] == ["ball"]
+    assert "mesh / sphere" in bench.format_table(data)
