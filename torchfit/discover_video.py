@@ -761,9 +761,11 @@ class VideoProblem:
 
     def _frozen(self, model: _Model) -> Tensor:
         """(14 + P + 2,) True for the columns the refits hold fixed: a sphere's orientation, and its
-        spin unless an effect reveals it (:meth:`_free_count`). Left free, these directions the
-        data sees only through the mesh's facets made the refits wander from run to run (first-set
-        drag_foam_ball: C_d 0.53, 0.87 and 0.74 in three runs, each ± 0.1)."""
+        spin unless an effect reveals it (:meth:`_free_count`). Left free, these directions, which
+        the data saw only through the mesh's facets, made the refits wander from run to run
+        (first-set drag_foam_ball: C_d 0.53, 0.87 and 0.74 in three runs, each ± 0.1); a round
+        shape is now drawn as its sphere (:attr:`torchfit.render.RenderMesh.sphere`), which no
+        turn moves."""
         frozen = torch.zeros(14 + self._extra_count(model), dtype=torch.bool)
         if not self.hidden:
             return frozen

@@ -380,8 +380,9 @@ def _end_pixels(mesh: RenderMesh, camera: Camera, posed: _Posed, edge_idx: Tenso
                 distort: Callable[[Tensor], Tensor] | None) -> Tensor:
     """(N, P, K, 2 ends, 2 uv) image pixels of the (N, P, K, 2) vertices ``edge_idx``: moved by
     the rolling shutter where there is one, projected, then distorted by the lens. Whichever is
-    fewer is projected: the contour edges' ends (a ball's mesh, 642 vertices and some 180 ends),
-    or every vertex, then gathered (a box's 8 vertices and up to 12 ends)."""
+    fewer is projected: the contour edges' ends (a ball's icosphere drawn as a mesh, 256 hull
+    vertices and some 70 ends), or every vertex, then gathered (a box's 8 vertices and up to 12
+    ends)."""
     ends = edge_idx.reshape(len(edge_idx), -1)  # (N, M)
     if ends.shape[1] < len(mesh.vertices):
         if posed.moved is not None:

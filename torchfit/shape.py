@@ -144,7 +144,8 @@ class Shape:
         """True for a sphere about its centre of mass: the mesh fills at least 95 % of the ball
         through its farthest vertex (an icosphere of 162 vertices fills 96.6 %, of 642 99.1 %; a
         cube 37 %, a cylinder as tall as it is wide 53 %). No rotation changes its silhouette, so
-        its orientation and spin are hidden from video."""
+        its orientation and spin are hidden from video; it is drawn as its sphere, not its mesh
+        (:attr:`torchfit.render.RenderMesh.sphere`)."""
         return bool(self.volume >= 0.95 * 4.0 / 3.0 * np.pi * self.radius**3)
 
     @property
