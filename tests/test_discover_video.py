@@ -697,6 +697,48 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
     assert torch.equal(after.cands.omega, moved.cands.omega)
 
 
+def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
+    """A ball's lift coefficient trades with the size of its unseen spin, so the Wald test of
+    Magnus lift on a ball is of the lift vector ``C_L ω`` (3), not of ``C_L``: where the data see
+    only that vector (the covariance the pseudo-inverse of its information, unit noise, and a
+    large one along the direction that trades ``C_L`` for the spin's size), the statistic is the
+    vector's squared size in its own units, and the same for a doubled ``C_L`` with half the
+    spin; ``C_L`` alone reads almost nothing. Another effect that reveals the
+    spin (an offset centre of mass) leaves the plain test."""
+    import torchfit.discover_video as dv
+    from torchfit.discover import wald_statistic
+
+    ball = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0)
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.0}, shape=ball)
+    video = dv.VideoProblem(problem)
+    base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+
+    def statistic(lift, spin):
+        model = video._extend(base, ("magnus",))
+        model.values["magnus"]["lift_coefficient"] = torch.tensor(lift, dtype=F64)
+        model.cands.omega[:] = torch.tensor(spin, dtype=F64)
+        c, w = lift / dv.EFFECT_SCALES["lift_coefficient"], torch.tensor(spin, dtype=F64) / dv.SCALES["omega"]
+        grad = torch.cat((w[:, None], c * torch.eye(3, dtype=F64)), 1)  # d(c w) / d(c, w)
+        size = 14 + video._extra_count(model)
+        cov = torch.eye(size, dtype=F64)
+        index = torch.tensor([14, 9, 10, 11])  # C_L's column, then the spin's (delta, com, velocity first)
+        unseen = torch.cat((torch.tensor([c], dtype=F64), -w))  # C_L up, the spin down: the same lift
+        unseen = unseen / unseen.norm()
+        cov[index[:, None], index] = torch.linalg.pinv(grad.T @ grad) + 1e6 * torch.outer(unseen, unseen)
+        alone = wald_statistic(torch.tensor([c]), torch.zeros(1, dtype=F64), cov[14:15, 14:15])
+        return video._lift_wald(model, cov, 14), alone, float((c * w).square().sum())
+
+    lift, alone, size = statistic(0.6, [2.0, -8.0, 3.0])
+    assert lift == pytest.approx(size, rel=1e-6)
+    assert statistic(1.2, [1.0, -4.0, 1.5])[0] == pytest.approx(size, rel=1e-6)
+    assert alone < 1e-3 * lift
+    # the test the criterion applies: magnus alone on a ball takes the lift vector's, with an
+    # offset centre of mass (the spin seen twice) the plain one
+    seen = video._extend(base, ("magnus", "com_offset"))
+    assert dv.revealed(list(video._extend(base, ("magnus",)).values)) == dv.EFFECTS["magnus"].reveals
+    assert dv.revealed(list(seen.values)) > dv.EFFECTS["magnus"].reveals
+
+
 @pytest.mark.parametrize("ball", [False, True])
 def test_jacobian_is_each_columns_forward_difference_of_the_residual(ball):
     """The batched Jacobian (free state columns and every effect parameter in one render, the
