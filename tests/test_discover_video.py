@@ -732,6 +732,12 @@ def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
     assert lift == pytest.approx(size, rel=1e-6)
     assert statistic(1.2, [1.0, -4.0, 1.5])[0] == pytest.approx(size, rel=1e-6)
     assert alone < 1e-3 * lift
+    # the report gives a ball's named lift as that vector, and nothing with the spin seen otherwise
+    params = {"magnus": {"lift_coefficient": {"value": -0.5, "std": 9.0}}}
+    line = dv.ball_lift_lines(["magnus"], params, torch.tensor([0.0, 6.0, -8.0], dtype=F64))
+    assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) rad/s (|C_L w| 5.00 rad/s)" in line[0]
+    assert dv.ball_lift_lines(["magnus", "com_offset"], params, torch.ones(3, dtype=F64)) == []
+    assert dv.ball_lift_lines(["quadratic_drag"], params, torch.ones(3, dtype=F64)) == []
     # the test the criterion applies: magnus alone on a ball takes the lift vector's, with an
     # offset centre of mass (the spin seen twice) the plain one
     seen = video._extend(base, ("magnus", "com_offset"))

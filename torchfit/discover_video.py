@@ -1655,6 +1655,18 @@ def plain_unit_lines(verdict: Sequence[str], params: dict, stated_fps: float) ->
     return lines
 
 
+def ball_lift_lines(verdict: Sequence[str], params: dict, spin: Tensor) -> list[str]:
+    """A ball's named Magnus lift as the video sees it, when only the lift reveals the spin: the
+    vector ``C_L ω`` (rad/s), not ``C_L`` and the spin apart (they trade). ``params`` as
+    :func:`torchfit.discover.parameter_lines` takes them, ``spin`` (3,) the fit's, rad/s."""
+    if "magnus" not in verdict or revealed(list(verdict)) != EFFECTS["magnus"].reveals:
+        return []
+    lift, spin = params["magnus"]["lift_coefficient"]["value"], spin.detach().cpu().double()
+    return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{lift * float(w) + 0.0:.2f}' for w in spin)}) rad/s "
+            f"(|C_L w| {abs(lift) * float(spin.norm()):.2f} rad/s), not C_L and the spin apart: the C_L above "
+            f"goes with the spin the fit chose, {float(spin.norm()):.1f} rad/s"]
+
+
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
                   unexplained: dict | None = None, mismatch: dict | None = None,
                   baseline_iou: float | None = None) -> list[str]:
@@ -1678,6 +1690,8 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     lines += verdict_lines(selection, final.params, label, explained=not left)
     times = video.problem.times.detach().cpu().numpy()
     lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
+    if video.hidden:
+        lines += ball_lift_lines(selection.verdict, final.params, final.payload["model"].cands.omega[0])
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape))
