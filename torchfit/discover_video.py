@@ -425,6 +425,23 @@ def _stacked_values(parts: Sequence[tuple[dict, int]]) -> dict:
     return out
 
 
+def _state_columns(cands: Candidates) -> dict[str, slice]:
+    """The (14,) state's columns of each of ``cands``' fields, in ``SCALES``' order (as the
+    refits' Jacobian lays them out)."""
+    columns, offset = {}, 0
+    for name in SCALES:
+        size = getattr(cands, name).shape[1]
+        columns[name] = slice(offset, offset + size)
+        offset += size
+    return columns
+
+
+def _spin_seen_by_lift_alone(names) -> bool:
+    """Whether a sphere's spin is seen through Magnus lift alone among the effects ``names``
+    (then only ``C_L ω`` is measured, not ``C_L`` and the spin apart)."""
+    return "magnus" in names and revealed(list(names)) == EFFECTS["magnus"].reveals
+
+
 class VideoProblem:
     """Silhouettes of one recording as a :class:`torchfit.discover.SelectionProblem`.
 
@@ -723,11 +740,8 @@ class VideoProblem:
         (:attr:`nuisance_names`: the edge bias's two terms, a fitted point spread, and a fitted
         exposure's fraction, which must stay in [0, 1]).
         """
-        fields, offset = {}, 0
-        for name, scale in SCALES.items():
-            base = getattr(model.cands, name)
-            fields[name] = base + scale * state[:, offset:offset + base.shape[1]]
-            offset += base.shape[1]
+        fields = {name: getattr(model.cands, name) + SCALES[name] * state[:, columns]
+                  for name, columns in _state_columns(model.cands).items()}
         cands = Candidates(model.cands.base.expand(len(state), 4), **fields)
         values, offset = {}, 0
         for name, params in model.values.items():
@@ -770,11 +784,8 @@ class VideoProblem:
         if not self.hidden:
             return frozen
         held = {"delta"} | (set() if revealed(list(model.values)) else {"omega"})
-        offset = 0
-        for name in SCALES:  # the state's columns, as _build lays them out
-            size = getattr(model.cands, name).shape[1]
-            frozen[offset:offset + size] = name in held
-            offset += size
+        for name in held:
+            frozen[_state_columns(model.cands)[name]] = True
         return frozen
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
@@ -1011,16 +1022,11 @@ class VideoProblem:
         rad/s with ΔBIC 561 had its lift turned away; experiments/discover/HISTORY.md,
         thirty-fourth session). In the Jacobian's scaled units, which change the vector by a
         constant factor only."""
-        offset = 0
-        for name in SCALES:  # the state's columns, as _build lays them out
-            size = getattr(model.cands, name).shape[1]
-            if name == "omega":
-                break
-            offset += size
+        spin_columns = _state_columns(model.cands)["omega"]
         lift = torch.as_tensor(model.values["magnus"]["lift_coefficient"], dtype=torch.float64).reshape(()) \
             / EFFECT_SCALES["lift_coefficient"]
         spin = model.cands.omega[0].detach().cpu().to(torch.float64) / SCALES["omega"]
-        index = torch.tensor([column, offset, offset + 1, offset + 2])
+        index = torch.tensor([column, *range(spin_columns.start, spin_columns.stop)])
         block = cov.cpu()[index][:, index]  # (4, 4): C_L, then the spin's three
         grad = torch.cat((spin[:, None], lift * torch.eye(3, dtype=torch.float64)), 1)  # (3, 4)
         return wald_statistic(lift * spin, torch.zeros(3, dtype=torch.float64), grad @ block @ grad.T)
@@ -1047,7 +1053,7 @@ class VideoProblem:
                 offset += count
             block = cov[14 + start:14 + offset, 14 + start:14 + offset].cpu()
             wald[name] = wald_statistic(torch.cat(value), torch.cat(null), block)
-            if name == "magnus" and self.hidden and revealed(list(model.values)) == EFFECTS["magnus"].reveals:
+            if name == "magnus" and self.hidden and _spin_seen_by_lift_alone(model.values):
                 wald[name] = self._lift_wald(model, cov, 14 + start)
             alone, at = alone_std(block), start
             for pname, count, scale in scales:
@@ -1659,7 +1665,7 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, spin: Tensor) -> list[
     """A ball's named Magnus lift as the video sees it, when only the lift reveals the spin: the
     vector ``C_L ω`` (rad/s), not ``C_L`` and the spin apart (they trade). ``params`` as
     :func:`torchfit.discover.parameter_lines` takes them, ``spin`` (3,) the fit's, rad/s."""
-    if "magnus" not in verdict or revealed(list(verdict)) != EFFECTS["magnus"].reveals:
+    if "magnus" not in verdict or not _spin_seen_by_lift_alone(verdict):
         return []
     lift, spin = params["magnus"]["lift_coefficient"]["value"], spin.detach().cpu().double()
     return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{lift * float(w) + 0.0:.2f}' for w in spin)}) rad/s "

@@ -314,7 +314,7 @@ def _sphere_ends(sphere: Tensor, camera: Camera, rot: Tensor, trans: Tensor,
     """
     centre = torch.einsum("nij,j->ni", rot, sphere[:3]) + trans  # (N, 3)
     radius = sphere[3]
-    behind = (centre[:, 2] - radius <= min_depth).detach()  # its nearest point at min_depth or nearer
+    behind = centre[:, 2] - radius <= min_depth  # its nearest point at min_depth or nearer
     # a sphere not drawn gets a harmless stand-in, so nothing below divides by zero or takes a
     # root of a negative number (which would poison the batch's gradients)
     stand_in = torch.zeros_like(centre)
