@@ -110,6 +110,10 @@ def concealed_specs(fresh: int = 0) -> list[tuple[mr.RecordingSpec, str]]:
         (S(name="magnus_cylinder", shape="cylinder", **lift(1.0), spin_rate=25.0,
            spin_axis="major", spin_wobble=0.2, tilt_deg=7.0, roll_deg=4.0, seed=112, **long),
          "Magnus lift, cylinder tumbling end over end"),
+        # a ball's lift: its spin is hidden from video, so only the lift vector C_L w is measured
+        # (added 2026-11-29, thirty-fifth session; HISTORY.md)
+        (S(name="magnus_ball", **foam, **lift(1.0), spin_rate=40.0, spin_axis="random", tilt_deg=6.0,
+           roll_deg=3.0, seed=161, **long), "Magnus lift, foam ball spinning at 40 rad/s"),
         # ---- centre of mass moved by a hidden dense block ----
         # com_tshape, time_tshape and lens_tshape were first made stronger (36 g, 58.5 fps, k1 -0.15):
         # their baselines were visibly off (mean IoU 0.885, 0.862, 0.773), not concealed
