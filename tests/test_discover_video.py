@@ -726,18 +726,29 @@ def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
         unseen = unseen / unseen.norm()
         cov[index[:, None], index] = torch.linalg.pinv(grad.T @ grad) + 1e6 * torch.outer(unseen, unseen)
         alone = wald_statistic(torch.tensor([c]), torch.zeros(1, dtype=F64), cov[14:15, 14:15])
-        return video._lift_wald(model, cov, 14), alone, float((c * w).square().sum())
+        wald, stored = video._ball_lift(model, cov, 14)
+        return wald, alone, float((c * w).square().sum()), stored
 
-    lift, alone, size = statistic(0.6, [2.0, -8.0, 3.0])
+    lift, alone, size, stored = statistic(0.6, [2.0, -8.0, 3.0])
     assert lift == pytest.approx(size, rel=1e-6)
     assert statistic(1.2, [1.0, -4.0, 1.5])[0] == pytest.approx(size, rel=1e-6)
     assert alone < 1e-3 * lift
-    # the report gives a ball's named lift as that vector, and nothing with the spin seen otherwise
+    # stored in physical units: the vector C_L ω, and its covariance the scaled one's times the
+    # scales' product squared (the pseudo-inverse of the information, plus nothing along the
+    # trade, which moves no lift)
+    assert stored["value"] == pytest.approx([1.2, -4.8, 1.8], rel=1e-12)
+    unit = dv.EFFECT_SCALES["lift_coefficient"] * dv.SCALES["omega"]
+    assert torch.tensor(stored["covariance"], dtype=F64) == pytest.approx(unit**2 * torch.eye(3, dtype=F64), abs=1e-9)
+    # the report gives a ball's named lift as that vector and its part across the velocity, and
+    # nothing with the spin seen otherwise
     params = {"magnus": {"lift_coefficient": {"value": -0.5, "std": 9.0}}}
-    line = dv.ball_lift_lines(["magnus"], params, torch.tensor([0.0, 6.0, -8.0], dtype=F64))
-    assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) rad/s (|C_L w| 5.00 rad/s)" in line[0]
-    assert dv.ball_lift_lines(["magnus", "com_offset"], params, torch.ones(3, dtype=F64)) == []
-    assert dv.ball_lift_lines(["quadratic_drag"], params, torch.ones(3, dtype=F64)) == []
+    ball_lift = {"value": [0.0, -3.0, 4.0], "std": [0.1, 0.2, 0.3], "velocity": [0.0, 0.0, 2.0],
+                 "covariance": torch.diag(torch.tensor([0.01, 0.04, 0.09])).tolist()}
+    line = dv.ball_lift_lines(["magnus"], params, ball_lift)
+    assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) ± (0.10, 0.20, 0.30) rad/s" in line[0]
+    assert "across the initial velocity 3.00 ± 0.20 rad/s" in line[0] and "10.0 rad/s" in line[0]
+    assert dv.ball_lift_lines(["magnus", "com_offset"], params, ball_lift) == []
+    assert dv.ball_lift_lines(["quadratic_drag"], params, ball_lift) == []
     # the test the criterion applies: magnus alone on a ball takes the lift vector's, with an
     # offset centre of mass (the spin seen twice) the plain one
     seen = video._extend(base, ("magnus", "com_offset"))

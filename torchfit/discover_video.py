@@ -1013,34 +1013,46 @@ class VideoProblem:
         frames = len(held_resid) - len(self.prior_terms(held_model.nuisances))  # the prior rows come last
         return predictive_terms(held_resid[:frames], held_jac[:frames], cov)
 
-    def _lift_wald(self, model: _Model, cov: Tensor, column: int) -> float:
-        """The Wald statistic of a sphere's Magnus lift, whose spin only the lift reveals: of the
-        lift vector ``C_L ω`` (3,) against none, its covariance carried from ``C_L``'s and the
-        spin's (``cov``'s column ``column`` and the spin's columns; the delta method). ``C_L``
-        alone is no test there: it trades with the size of the spin, which the video does not
-        see (its standard error read 0.1 to 490 on the concealed balls, and a ball spinning at 40
-        rad/s with ΔBIC 561 had its lift turned away; experiments/discover/HISTORY.md,
-        thirty-fourth session). In the Jacobian's scaled units, which change the vector by a
-        constant factor only."""
+    def _lift_vector(self, model: _Model, cov: Tensor, column: int) -> tuple[Tensor, Tensor]:
+        """A sphere's Magnus lift whose spin only the lift reveals, as the video sees it: the (3,)
+        lift vector ``C_L ω`` (rad/s, world frame) and its (3, 3) covariance, carried from
+        ``C_L``'s and the spin's (``cov``, in the Jacobian's scaled units: its column ``column``
+        and the spin's columns) by the delta method. ``C_L`` alone means nothing there: it trades
+        with the size of the spin, which the video does not see (its standard error read 0.1 to
+        490 on the concealed balls, and a ball spinning at 40 rad/s with ΔBIC 561 had its lift
+        turned away by ``C_L``'s Wald test; experiments/discover/HISTORY.md, thirty-fourth
+        session)."""
         spin_columns = _state_columns(model.cands)["omega"]
-        lift = torch.as_tensor(model.values["magnus"]["lift_coefficient"], dtype=torch.float64).reshape(()) \
-            / EFFECT_SCALES["lift_coefficient"]
-        spin = model.cands.omega[0].detach().cpu().to(torch.float64) / SCALES["omega"]
+        lift = float(torch.as_tensor(model.values["magnus"]["lift_coefficient"]).reshape(()))
+        spin = model.cands.omega[0].detach().cpu().to(torch.float64)
         index = torch.tensor([column, *range(spin_columns.start, spin_columns.stop)])
-        block = cov.cpu()[index][:, index]  # (4, 4): C_L, then the spin's three
-        grad = torch.cat((spin[:, None], lift * torch.eye(3, dtype=torch.float64)), 1)  # (3, 4)
-        return wald_statistic(lift * spin, torch.zeros(3, dtype=torch.float64), grad @ block @ grad.T)
+        units = torch.tensor([EFFECT_SCALES["lift_coefficient"], *[SCALES["omega"]] * 3], dtype=torch.float64)
+        block = cov.cpu()[index][:, index] * torch.outer(units, units)  # (4, 4): C_L, then the spin's three
+        grad = torch.cat((spin[:, None], lift * torch.eye(3, dtype=torch.float64)), 1)  # (3, 4) d(C_L ω)/d(C_L, ω)
+        return lift * spin, grad @ block @ grad.T
 
-    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, ...], dict]:
+    def _ball_lift(self, model: _Model, cov: Tensor, column: int) -> tuple[float, dict]:
+        """The Wald statistic of a sphere's lift vector (:meth:`_lift_vector`) against none, and
+        the vector as ``discover.json`` stores it: ``value`` and ``std`` (3,) rad/s, ``covariance``
+        (3, 3), and the fit's initial ``velocity`` (3,) m/s, across which the lift acts."""
+        value, vector_cov = self._lift_vector(model, cov, column)
+        wald = wald_statistic(value, torch.zeros(3, dtype=torch.float64), vector_cov)
+        return wald, {"value": value.tolist(), "std": vector_cov.diagonal().clamp(min=0).sqrt().tolist(),
+                      "covariance": vector_cov.tolist(),
+                      "velocity": model.cands.com_velocity[0].detach().cpu().double().tolist(),
+                      "unit": "rad/s (C_L times the spin, world frame)"}
+
+    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, ...], dict, dict | None]:
         """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
         :func:`torchfit.discover.alone_std` the second), of the nuisances (the edge bias's two
-        terms in pixels, and a fitted exposure's fraction), and
+        terms in pixels, and a fitted exposure's fraction),
         each effect's Wald statistic against its null values
-        (:func:`torchfit.discover.wald_statistic`): Gauss-Newton at the optimum, inflated by the
-        reduced chi-squared when it exceeds 1."""
+        (:func:`torchfit.discover.wald_statistic`; a ball's lift, whose spin only the lift
+        reveals, as its lift vector's), and that lift vector (:meth:`_ball_lift`, None elsewhere):
+        Gauss-Newton at the optimum, inflated by the reduced chi-squared when it exceeds 1."""
         cov = self._covariance(model, resid, jac)
         std = cov.diagonal().clamp(min=0).sqrt()[14:]
-        out, wald, offset = {}, {}, 0
+        out, wald, offset, ball_lift = {}, {}, 0, None
         for name, params in model.values.items():
             start, value, null, scales = offset, [], [], []
             for pname, current in params.items():
@@ -1054,14 +1066,14 @@ class VideoProblem:
             block = cov[14 + start:14 + offset, 14 + start:14 + offset].cpu()
             wald[name] = wald_statistic(torch.cat(value), torch.cat(null), block)
             if name == "magnus" and self.hidden and _spin_seen_by_lift_alone(model.values):
-                wald[name] = self._lift_wald(model, cov, 14 + start)
+                wald[name], ball_lift = self._ball_lift(model, cov, 14 + start)
             alone, at = alone_std(block), start
             for pname, count, scale in scales:
                 part, solo = std[at:at + count].cpu() * scale, alone[at - start:at - start + count] * scale
                 out.setdefault(name, {})[pname] = tuple(x.tolist() if count > 1 else float(x[0]) for x in (part, solo))
                 at += count
         nuisances = tuple(float(std[offset + k]) * NUISANCE_SCALES[name] for k, name in enumerate(self.nuisance_names))
-        return out, nuisances, wald
+        return out, nuisances, wald, ball_lift
 
     def _describe(self, model: _Model, std: dict) -> dict:
         params = {}
@@ -1077,7 +1089,7 @@ class VideoProblem:
                 }
         return params
 
-    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict],
+    def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict, dict | None],
                held_models: list[_Model], held_terms: list[tuple[float, float]] | None = None) -> ModelFit:
         """``model`` fitted on all used frames, with ``std`` its :meth:`_uncertainty`, scored as a
         ModelFit; ``held_models`` the fits of each of ``self.splits``' train frames, whose
@@ -1110,7 +1122,7 @@ class VideoProblem:
                                            {"value": self.nuisance(model.nuisances, name),
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
-                                 "held_channels": held_channels,
+                                 "held_channels": held_channels, "ball_lift": std[3],
                                  "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
                                  "heldout_centroid_px": float(np.mean(split_centroid)),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -1477,7 +1489,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "heldout_split_centroid_px": f.payload["heldout_split_centroid_px"],
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
-                    "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
+                    "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params,
+                    "ball_lift": f.payload.get("ball_lift")} for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
@@ -1488,6 +1501,10 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     }
     if truth is not None:
         content["truth_effects"] = truth.get("effects", {})
+        params = truth.get("params", {})
+        # what a ball's lift is measured against: the true C_L ω and the velocity across which it acts
+        content["truth_motion"] = {"shape": truth.get("shape"), "velocity": params.get("velocity"),
+                                   "angular_velocity": params.get("angular_velocity")}
     masks = {}
     observed = problem.masks.cpu().numpy() > 0.5
     for label, fit_ in (("baseline", before), ("final", after)):
@@ -1661,16 +1678,41 @@ def plain_unit_lines(verdict: Sequence[str], params: dict, stated_fps: float) ->
     return lines
 
 
-def ball_lift_lines(verdict: Sequence[str], params: dict, spin: Tensor) -> list[str]:
+def across_velocity(vector: Sequence[float], velocity: Sequence[float]) -> np.ndarray:
+    """(3,) the part of a (3,) vector across a (3,) velocity."""
+    vector, direction = np.asarray(vector, dtype=float), np.asarray(velocity, dtype=float)
+    direction = direction / np.linalg.norm(direction)
+    return vector - direction * float(direction @ vector)
+
+
+def lift_across(vector: Sequence[float], velocity: Sequence[float],
+                covariance: Sequence[Sequence[float]] | None = None) -> tuple[float, float]:
+    """The size of a (3,) lift vector ``C_L ω``'s part across a (3,) velocity (the part along it
+    makes no lift), and its standard error from the vector's (3, 3) ``covariance`` (delta method;
+    0 without one)."""
+    across = across_velocity(vector, velocity)
+    size = float(np.linalg.norm(across))
+    if covariance is None or size == 0.0:
+        return size, 0.0
+    grad = across / size  # d|P L| / dL with P the projection across the velocity
+    return size, float(np.sqrt(max(grad @ np.asarray(covariance, dtype=float) @ grad, 0.0)))
+
+
+def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> list[str]:
     """A ball's named Magnus lift as the video sees it, when only the lift reveals the spin: the
-    vector ``C_L ω`` (rad/s), not ``C_L`` and the spin apart (they trade). ``params`` as
-    :func:`torchfit.discover.parameter_lines` takes them, ``spin`` (3,) the fit's, rad/s."""
-    if "magnus" not in verdict or not _spin_seen_by_lift_alone(verdict):
+    vector ``C_L ω`` (rad/s) and its part across the initial velocity, not ``C_L`` and the spin
+    apart (they trade). ``params`` as :func:`torchfit.discover.parameter_lines` takes them,
+    ``lift`` the final model's :meth:`VideoProblem._ball_lift` entry."""
+    if "magnus" not in verdict or not _spin_seen_by_lift_alone(verdict) or lift is None:
         return []
-    lift, spin = params["magnus"]["lift_coefficient"]["value"], spin.detach().cpu().double()
-    return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{lift * float(w) + 0.0:.2f}' for w in spin)}) rad/s "
-            f"(|C_L w| {abs(lift) * float(spin.norm()):.2f} rad/s), not C_L and the spin apart: the C_L above "
-            f"goes with the spin the fit chose, {float(spin.norm()):.1f} rad/s"]
+    value, std = lift["value"], lift["std"]
+    across, across_std = lift_across(value, lift["velocity"], lift["covariance"])
+    coefficient = abs(params["magnus"]["lift_coefficient"]["value"])
+    spin = float(np.linalg.norm(value)) / coefficient if coefficient > 0 else float("inf")
+    return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) "
+            f"± ({', '.join(f'{v:.2f}' for v in std)}) rad/s; its part across the initial velocity "
+            f"{across:.2f} ± {across_std:.2f} rad/s (along it, a spin makes no lift). Not C_L and the "
+            f"spin apart: the C_L above goes with the spin the fit chose, {spin:.1f} rad/s"]
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
@@ -1697,7 +1739,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     times = video.problem.times.detach().cpu().numpy()
     lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
     if video.hidden:
-        lines += ball_lift_lines(selection.verdict, final.params, final.payload["model"].cands.omega[0])
+        lines += ball_lift_lines(selection.verdict, final.params, final.payload.get("ball_lift"))
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape))

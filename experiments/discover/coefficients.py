@@ -29,7 +29,10 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 SIX = (0, 1, 2, 3, 4, 5)
+
+from concealed import ball_lift  # noqa: E402
 
 
 def _scalar_rows(truth: dict, fitted_of) -> list[tuple[str, str, float, float, float]]:
@@ -55,15 +58,24 @@ def coefficient_rows(content: dict) -> list[tuple[str, str, float, float, float]
     if not truth or sorted(content["verdict"]) != sorted(truth):
         return []
     fitted = content["models"][-1]["params"]
-    return _scalar_rows(truth, lambda effect: fitted.get(effect, {}))
+    rows = _scalar_rows(truth, lambda effect: fitted.get(effect, {}))
+    lift = ball_lift(content)
+    if lift is None:
+        return rows
+    # a ball's C_L trades with its unseen spin: its lift is the vector C_L ω's part across v
+    return [r for r in rows if r[:2] != ("magnus", "lift_coefficient")] + \
+        [("magnus", "lift_across", lift["true"], lift["fitted"], lift["std"])]
 
 
 def unselected_rows(content: dict) -> list[tuple[str, str, float, float, float]]:
     """``(effect, parameter, truth, fitted, std)`` of a run's hidden scalar parameters from the
     first round's fit of the hidden effect alone, whatever the verdict (none for a control, a
-    vector, a truth of 0, or a run that did not score the effect)."""
+    vector, a truth of 0, or a run that did not score the effect; none for a ball's lift, whose
+    C_L trades with its unseen spin)."""
     effects = content.get("effects", {})
-    truth = {e: p for e, p in (content.get("truth_effects") or {}).items() if effects.get(e)}
+    ball = (content.get("truth_motion") or {}).get("shape") == "sphere"
+    truth = {e: p for e, p in (content.get("truth_effects") or {}).items()
+             if effects.get(e) and not (ball and e == "magnus")}
     return _scalar_rows(truth, lambda effect: effects[effect][0]["params"].get(effect, {}))
 
 
