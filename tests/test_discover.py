@@ -326,6 +326,10 @@ def test_limits_line_says_unobservable_where_the_limit_is_beyond_what_the_physic
     assert len(near) == 1 and ("com_offset.offset ±(0.005, 0.03, 0.001) m (body frame), along y more than the "
                                "physics allows (none there).") in near[0]
     assert "com_offset.offset ±(1.9e+02, 23, 6.8) m" in limits_line(selection([190.0, 23.0, 6.8]), "clip")[0]
+    # an effect with no single size on this data (a ball's lift) says why instead of a number
+    ball = limits_line(selection([0.005, 0.003, 0.001]), "clip", no_size={"quadratic_drag": "why not"})
+    assert "quadratic_drag: no single size (why not); com_offset.offset ±(0.005" in ball[0]
+    assert "drag_coefficient" not in ball[0]
 
 
 def test_alone_std_is_the_error_of_a_parameter_fitted_with_its_effects_others_fixed():

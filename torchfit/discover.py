@@ -695,20 +695,27 @@ def _size_text(values: np.ndarray, vector: bool) -> str:
     return "(" + ", ".join(f"{v:.2g}" for v in values) + ")" if vector else f"{values[0]:.2g}"
 
 
-def limits_line(selection: Selection, data: str, reach: dict | None = None) -> list[str]:
+def limits_line(selection: Selection, data: str, reach: dict | None = None,
+                no_size: dict | None = None) -> list[str]:
     """What the first round could not have seen: each unnamed parameter's size below which it
     would not pass the criterion on this ``data`` ("clip", "tracks"), moving alone (the
     effect's other parameters at their null; :func:`alone_std`).
+
+    ``no_size`` optionally maps an effect to why it has no such size on this data (a ball's
+    lift, whose coefficient trades with a spin the video does not see); that is said instead.
 
     ``reach`` optionally gives, per ``"effect.parameter"``, the largest size the physics allows
     (a scalar, or one per component of a vector parameter, e.g. how far the body extends from its
     centre of mass for ``com_offset.offset``). A limit beyond it is said to be unobservable instead
     of quoted as a size no object could have.
     """
-    reach = reach or {}
+    reach, no_size = reach or {}, no_size or {}
     limits, unseen = [], []
     for name, score in (selection.steps[0].scores.items() if selection.steps else ()):
         if name in selection.verdict:
+            continue
+        if name in no_size:
+            limits.append(f"{name}: no single size ({no_size[name]})")
             continue
         for pname, limit in score.get("detectable_above", {}).items():
             if limit is None:

@@ -1742,7 +1742,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         lines += ball_lift_lines(selection.verdict, final.params, final.payload.get("ball_lift"))
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
-    lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape))
+    # a ball's lift coefficient trades with the spin the fit tried, which the video does not see
+    no_size = {"magnus": "a ball's lift is the vector C_L w, and the video does not see its spin"} \
+        if video.hidden else None
+    lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape), no_size=no_size)
     lines.append(f"Evidence: held-out centroid error {base.payload['heldout_centroid_px']:.2f} px -> "
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
