@@ -260,7 +260,10 @@ def table(rows: list[dict]) -> str:
         truth = {p: np.abs(np.asarray(v) - np.asarray(EFFECTS[e].null_params[p])).tolist()
                  for e, values in r.get("truth_effects", {}).items() for p, v in values.items()}
         visible = "; ".join(f"{p} {_fmt(v)}" + (f" ({_fmt(truth[p])})" if truth.get(p) is not None else "")
-                            for e in r.get("detectable_above", {}).values() for p, v in e.items())
+                            for e, limits in r.get("detectable_above", {}).items() for p, v in limits.items()
+                            if not (e == "magnus" and r.get("spin_hidden")))
+        if "magnus" in r.get("detectable_above", {}) and r.get("spin_hidden"):
+            visible = "; ".join(filter(None, (visible, "magnus: a ball's C_L ω, no single size")))
         fitted = "; ".join(f"{p} {_fmt(v['fitted'])} ± {_fmt(v['std'])} (true {_fmt(v['true'])}"
                            + (f", {v['angle_deg']:.0f}° apart)" if "angle_deg" in v else ")")
                            for e in r["params"].values() for p, v in e.items())
