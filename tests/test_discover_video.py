@@ -742,11 +742,13 @@ def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
     # the report gives a ball's named lift as that vector and its part across the velocity, and
     # nothing with the spin seen otherwise
     params = {"magnus": {"lift_coefficient": {"value": -0.5, "std": 9.0}}}
-    ball_lift = {"value": [0.0, -3.0, 4.0], "std": [0.1, 0.2, 0.3], "velocity": [0.0, 0.0, 2.0],
-                 "covariance": torch.diag(torch.tensor([0.01, 0.04, 0.09])).tolist()}
+    # known least along z (± 30), 10° off the velocity: across it (0, -3) ± 0.2 along y
+    ball_lift = {"value": [0.0, -3.0, 4.0], "std": [0.1, 0.2, 30.0], "velocity": [0.0, 0.1763, 1.0],
+                 "covariance": torch.diag(torch.tensor([0.01, 0.04, 900.0])).tolist()}
     line = dv.ball_lift_lines(["magnus"], params, ball_lift)
-    assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) ± (0.10, 0.20, 0.30) rad/s" in line[0]
-    assert "across the initial velocity 3.00 ± 0.20 rad/s" in line[0] and "10.0 rad/s" in line[0]
+    assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) rad/s" in line[0]
+    assert "across the direction it sees least (10° from the initial velocity" in line[0]
+    assert "3.00 ± 0.20 rad/s, along it ± 30." in line[0] and "10.0 rad/s" in line[0]
     assert dv.ball_lift_lines(["magnus", "com_offset"], params, ball_lift) == []
     assert dv.ball_lift_lines(["quadratic_drag"], params, ball_lift) == []
     # the test the criterion applies: magnus alone on a ball takes the lift vector's, with an

@@ -1698,21 +1698,34 @@ def lift_across(vector: Sequence[float], velocity: Sequence[float],
     return size, float(np.sqrt(max(grad @ np.asarray(covariance, dtype=float) @ grad, 0.0)))
 
 
+def least_seen(covariance: Sequence[Sequence[float]]) -> np.ndarray:
+    """(3,) the unit direction a (3, 3) covariance knows least (its largest eigenvalue's
+    eigenvector): for a ball's lift vector, about the flight's direction, along which a spin
+    makes little lift."""
+    return np.linalg.eigh(np.asarray(covariance, dtype=float))[1][:, -1]
+
+
 def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> list[str]:
     """A ball's named Magnus lift as the video sees it, when only the lift reveals the spin: the
-    vector ``C_L ω`` (rad/s) and its part across the initial velocity, not ``C_L`` and the spin
-    apart (they trade). ``params`` as :func:`torchfit.discover.parameter_lines` takes them,
-    ``lift`` the final model's :meth:`VideoProblem._ball_lift` entry."""
+    vector ``C_L ω`` (rad/s), its part across the direction the video sees least (about the
+    flight's, :func:`least_seen`) with its standard error, and how little is known along that
+    direction; not ``C_L`` and the spin apart (they trade). ``params`` as
+    :func:`torchfit.discover.parameter_lines` takes them, ``lift`` the final model's
+    :meth:`VideoProblem._ball_lift` entry."""
     if "magnus" not in verdict or not _spin_seen_by_lift_alone(verdict) or lift is None:
         return []
-    value, std = lift["value"], lift["std"]
-    across, across_std = lift_across(value, lift["velocity"], lift["covariance"])
+    value, covariance = np.asarray(lift["value"]), np.asarray(lift["covariance"])
+    direction = least_seen(covariance)
+    across, across_std = lift_across(value, direction, covariance)
+    along_std = math.sqrt(max(float(direction @ covariance @ direction), 0.0))
+    velocity = np.asarray(lift["velocity"], dtype=float)
+    angle = math.degrees(math.acos(min(abs(float(direction @ velocity)) / float(np.linalg.norm(velocity)), 1.0)))
     coefficient = abs(params["magnus"]["lift_coefficient"]["value"])
     spin = float(np.linalg.norm(value)) / coefficient if coefficient > 0 else float("inf")
-    return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) "
-            f"± ({', '.join(f'{v:.2f}' for v in std)}) rad/s; its part across the initial velocity "
-            f"{across:.2f} ± {across_std:.2f} rad/s (along it, a spin makes no lift). Not C_L and the "
-            f"spin apart: the C_L above goes with the spin the fit chose, {spin:.1f} rad/s"]
+    return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) rad/s; "
+            f"across the direction it sees least ({angle:.0f}° from the initial velocity: a spin along the "
+            f"flight makes no lift) {across:.2f} ± {across_std:.2f} rad/s, along it ± {along_std:.3g}. Not C_L "
+            f"and the spin apart: the C_L above goes with the spin the fit chose, {spin:.1f} rad/s"]
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
