@@ -332,6 +332,8 @@ def test_a_balls_lift_is_compared_as_its_lift_vector_across_the_velocity():
     lift = r["params"]["magnus"]["lift_across"]
     assert lift["fitted"] == pytest.approx(8 ** 0.5) and lift["true"] == pytest.approx(3.0)
     assert lift["std"] == pytest.approx(0.2) and lift["angle_deg"] == pytest.approx(45.0)
+    # the covariance knows z least: across it, the same here
+    assert lift["least_seen"] == {"fitted": pytest.approx(8 ** 0.5), "std": pytest.approx(0.2), "true": pytest.approx(3.0)}
     assert conc.score([r])["coefficients_within_25pc"] == [1, 1]  # 2.83 against 3
     assert conc.limit_ratio(r) is None and r["spin_hidden"]
     assert coefficients.coefficient_rows(content) == [("magnus", "lift_across", 3.0, pytest.approx(8 ** 0.5),

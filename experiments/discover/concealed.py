@@ -65,6 +65,7 @@ from torchfit.discover_video import (
     VIDEO_SELECTION,
     across_velocity,
     discover_video,
+    least_seen,
     lift_across,
 )
 from torchfit.camera import Camera
@@ -224,9 +225,11 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
 
 def ball_lift(content: dict) -> dict | None:
     """A run's (``discover.json``'s ``content``) ball lift in its final model against the engine's,
-    as the video measures it: ``{"fitted", "std", "true", "angle_deg"}``, the size of the lift vector
-    ``C_L ω``'s part across the initial velocity (rad/s) and the angle between the fitted and the
-    true part (degrees). None unless the final model holds a ball's lift (``ball_lift``) and
+    as the video measures it: ``{"fitted", "std", "true", "angle_deg", "least_seen"}``, the size of
+    the lift vector ``C_L ω``'s part across the initial velocity (rad/s), the angle between the
+    fitted and the true part (degrees), and ``least_seen`` ``{"fitted", "std", "true"}`` the size
+    of its part across the direction the run's covariance knows least
+    (:func:`torchfit.discover_video.least_seen`). None unless the final model holds a ball's lift (``ball_lift``) and
     the engine hid one."""
     fitted, truth = content["models"][-1].get("ball_lift"), content.get("truth_motion")
     lift = (content.get("truth_effects") or {}).get("magnus")
@@ -237,8 +240,12 @@ def ball_lift(content: dict) -> dict | None:
     true_size, _ = lift_across(true_vector, truth["velocity"])
     a, b = across_velocity(fitted["value"], fitted["velocity"]), across_velocity(true_vector, truth["velocity"])
     cosine = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-300)
+    # the same across the direction the run's covariance knows least (both sides across it)
+    direction = least_seen(fitted["covariance"])
+    seen, seen_std = lift_across(fitted["value"], direction, fitted["covariance"])
     return {"fitted": size, "std": std, "true": true_size,
-            "angle_deg": math.degrees(math.acos(min(max(cosine, -1.0), 1.0)))}
+            "angle_deg": math.degrees(math.acos(min(max(cosine, -1.0), 1.0))),
+            "least_seen": {"fitted": seen, "std": seen_std, "true": lift_across(true_vector, direction)[0]}}
 
 
 def _without_third(score: dict) -> float | None:
