@@ -697,6 +697,28 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
     assert torch.equal(after.cands.omega, moved.cands.omega)
 
 
+def test_lift_across_standard_error_matches_finite_differences():
+    """The part of a lift vector across a direction: its size, and its delta-method standard
+    error against the gradient of the size by central differences (float64)."""
+    import torchfit.discover_video as dv
+
+    rng = np.random.default_rng(3)
+    vector, direction = rng.normal(size=3) * 10, rng.normal(size=3)
+    a = rng.normal(size=(3, 3))
+    covariance = a @ a.T
+    size, std = dv.lift_across(vector, direction, covariance)
+    unit = direction / np.linalg.norm(direction)
+    assert size == pytest.approx(np.linalg.norm(np.cross(unit, vector)), rel=1e-12)
+    eps, grad = 1e-6, np.zeros(3)
+    for i in range(3):
+        step = np.eye(3)[i] * eps
+        grad[i] = (dv.lift_across(vector + step, direction)[0] - dv.lift_across(vector - step, direction)[0]) / (2 * eps)
+    assert std == pytest.approx(np.sqrt(grad @ covariance @ grad), rel=1e-7)
+    # the direction a covariance knows least: its largest eigenvalue's, up to sign
+    least = dv.least_seen(np.diag([1.0, 100.0, 4.0]))
+    assert abs(least @ np.array([0.0, 1.0, 0.0])) == pytest.approx(1.0)
+
+
 def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
     """A ball's lift coefficient trades with the size of its unseen spin, so the Wald test of
     Magnus lift on a ball is of the lift vector ``C_L ω`` (3), not of ``C_L``: where the data see

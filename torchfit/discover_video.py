@@ -1685,12 +1685,12 @@ def across_velocity(vector: Sequence[float], velocity: Sequence[float]) -> np.nd
     return vector - direction * float(direction @ vector)
 
 
-def lift_across(vector: Sequence[float], velocity: Sequence[float],
+def lift_across(vector: Sequence[float], direction: Sequence[float],
                 covariance: Sequence[Sequence[float]] | None = None) -> tuple[float, float]:
-    """The size of a (3,) lift vector ``C_L ω``'s part across a (3,) velocity (the part along it
-    makes no lift), and its standard error from the vector's (3, 3) ``covariance`` (delta method;
-    0 without one)."""
-    across = across_velocity(vector, velocity)
+    """The size of a (3,) lift vector ``C_L ω``'s part across a (3,) direction (a velocity: the
+    part along it makes no lift), and its standard error from the vector's (3, 3) ``covariance``
+    (delta method; 0 without one)."""
+    across = across_velocity(vector, direction)
     size = float(np.linalg.norm(across))
     if covariance is None or size == 0.0:
         return size, 0.0

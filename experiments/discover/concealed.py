@@ -202,8 +202,9 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
         if effect == "com_offset" and "offset" in params[effect]:  # compare modulo the shape's symmetry
             entry = params[effect]["offset"]
             entry["fitted"] = _aligned(recordings / name, entry["fitted"], entry["true"])
-        if effect == "magnus" and ball_lift(content) is not None:  # a ball: its lift vector's part across v
-            params[effect] = {"lift_across": ball_lift(content)}
+        lift = ball_lift(content) if effect == "magnus" else None
+        if lift is not None:  # a ball: its lift vector's part across v
+            params[effect] = {"lift_across": lift}
     # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
     limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
     # round one's strongest candidate, passing or not: how close a control came to a false alarm
@@ -290,7 +291,7 @@ def table(rows: list[dict]) -> str:
 
 
 # The coefficients the issue asks to be within 25 % of the engine's
-# (a ball's lift as the size of its lift vector's part across the velocity, rad/s: _lift_across)
+# (a ball's lift as the size of its lift vector's part across the velocity, rad/s: ball_lift)
 COEFFICIENTS = ("drag_coefficient", "lift_coefficient", "lift_across")
 
 
