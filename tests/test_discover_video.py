@@ -134,7 +134,7 @@ def test_rolling_shutter_refit_recovers_the_line_delay_of_row_by_row_masks():
     _, before, _ = video._lm(model, used, 20)
     fitted, after, jac = video._lm(video._extend(model, ("rolling_shutter",)), used, 20)
     delay = float(fitted.values["rolling_shutter"]["line_delay"])
-    errors, _, wald = video._uncertainty(fitted, after, jac)
+    errors, _, wald, _ = video._uncertainty(fitted, after, jac)
     error, alone = errors["rolling_shutter"]["line_delay"]
     assert alone == pytest.approx(error)  # a one-parameter effect: alone is its marginal error
     assert abs(delay - 1.2e-4) < 2 * error, (delay, error)
@@ -488,7 +488,7 @@ def test_added_effect_starts_from_the_screened_start_nearest_the_data():
     clock = float(final.values["time_scale"]["time_scale"])
     assert clock == pytest.approx(1.04, abs=0.005)
     # the Wald statistic measures the clock from its null of 1 in its own standard errors
-    std, _, wald = video._uncertainty(final, resid, jac)
+    std, _, wald, _ = video._uncertainty(final, resid, jac)
     assert wald["time_scale"] == pytest.approx(((clock - 1.0) / std["time_scale"]["time_scale"][0]) ** 2, rel=1e-6)
     assert wald["time_scale"] > 25
 
