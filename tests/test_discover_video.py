@@ -697,6 +697,35 @@ def test_a_spheres_hidden_rotation_is_charged_only_with_an_effect_that_reveals_i
     assert torch.equal(after.cands.omega, moved.cands.omega)
 
 
+def test_each_model_stores_its_flight_at_the_start_as_result_json_does():
+    """``discover.json``'s models carry their flight at t = 0 as DESIGN.md's ``params``: for the
+    baseline the candidate's own state (mesh origin, orientation, spin, gravity); with an offset
+    centre of mass the mesh origin sits off the centre it flies about by the turned offset, the
+    velocity by the spin's lever on it, and the rest is the same."""
+    import torchfit.discover_video as dv
+    from torchfit.camera import gravity_direction
+    from torchfit.report import params_dict
+    from torchfit.rotation import quat_to_matrix
+
+    problem, cands = _synthetic("time_scale", {"time_scale": 1.0})
+    video = dv.VideoProblem(problem)
+    base = dv._Model(cands, {})
+    initial = video._initial(base)
+    assert initial == params_dict(cands.state(problem.body)[0], cands.gravity(problem.g)[0])
+    assert initial["gravity_dir"] == pytest.approx(
+        gravity_direction(cands.gravity_angles[0, 0], cands.gravity_angles[0, 1]).tolist(), abs=1e-12)
+    moved = video._extend(base, ("com_offset",))
+    delta = torch.tensor([0.01, -0.02, 0.005], dtype=F64)
+    moved.values["com_offset"]["offset"] = delta
+    shifted = video._initial(moved)
+    lever = quat_to_matrix(cands.quat()[0]) @ delta
+    assert torch.tensor(shifted["position"], dtype=F64) == pytest.approx(torch.tensor(initial["position"], dtype=F64) - lever, abs=1e-12)
+    assert torch.tensor(shifted["velocity"], dtype=F64) == pytest.approx(
+        torch.tensor(initial["velocity"], dtype=F64) - torch.cross(cands.omega[0], lever, dim=-1), abs=1e-12)
+    for key in ("orientation_wxyz", "angular_velocity", "gravity_dir", "tilt_deg", "roll_deg"):
+        assert shifted[key] == pytest.approx(initial[key], abs=1e-12)
+
+
 def test_lift_across_standard_error_matches_finite_differences():
     """The part of a lift vector across a direction: its size, and its delta-method standard
     error against the gradient of the size by central differences (float64)."""

@@ -52,9 +52,10 @@ from .discover import (
     wald_statistic,
 )
 from .dynamics import RigidBody
-from .effects import EFFECTS, Effect, make_effect, revealed
+from .effects import EFFECTS, Effect, apply_effects, make_effect, revealed
 from .losses import central_moments, mask_moments
 from .provenance import provenance
+from .report import params_dict
 from .render import RenderMesh, crop_windows, full_window, render_silhouettes, silhouette_moments
 from .residuals import (
     CHANNELS,
@@ -1075,6 +1076,17 @@ class VideoProblem:
         nuisances = tuple(float(std[offset + k]) * NUISANCE_SCALES[name] for k, name in enumerate(self.nuisance_names))
         return out, nuisances, wald, ball_lift
 
+    def _initial(self, model: _Model) -> dict:
+        """The model's flight at t = 0 (the first fitted frame) as DESIGN.md's ``result.json``
+        ``params`` (:func:`torchfit.report.params_dict`: the mesh origin's position and velocity,
+        orientation, spin, gravity's direction, tilt and roll), with its body effects applied (an
+        offset centre of mass moves the mesh origin about the one it flies)."""
+        cands = model.cands
+        body = apply_effects(self.effects(model.values), self.problem.body, self.problem.times)[0]
+        dtype = cands.com.dtype
+        body = RigidBody(body.mass.to(dtype), body.com.to(dtype), body.inertia.to(dtype))
+        return params_dict(cands.state(body)[0], cands.gravity(self.problem.g)[0])
+
     def _describe(self, model: _Model, std: dict) -> dict:
         params = {}
         for name, values in model.values.items():
@@ -1123,6 +1135,7 @@ class VideoProblem:
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
                                  "held_channels": held_channels, "ball_lift": std[3],
+                                 "initial": self._initial(model),
                                  "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
                                  "heldout_centroid_px": float(np.mean(split_centroid)),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -1490,7 +1503,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params,
-                    "ball_lift": f.payload.get("ball_lift")} for f in chain],
+                    "ball_lift": f.payload.get("ball_lift"), "initial": f.payload.get("initial")}
+                   for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
