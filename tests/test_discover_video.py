@@ -799,7 +799,7 @@ def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
     line = dv.ball_lift_lines(["magnus"], params, ball_lift)
     assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) rad/s" in line[0]
     assert "across the direction it sees least (10° from the initial velocity" in line[0]
-    assert "3.00 ± 0.20 rad/s, along it ± 30." in line[0] and "10.0 rad/s" in line[0]
+    assert "3.00 ± 0.20 rad/s, along it ± 30." in line[0] and "C_L -0.5 with the spin the fit chose, 10.0 rad/s" in line[0]
     assert dv.ball_lift_lines(["magnus", "com_offset"], params, ball_lift) == []
     assert dv.ball_lift_lines(["quadratic_drag"], params, ball_lift) == []
     # the test the criterion applies: magnus alone on a ball takes the lift vector's, with an

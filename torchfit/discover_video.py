@@ -1734,12 +1734,13 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> 
     along_std = math.sqrt(max(float(direction @ covariance @ direction), 0.0))
     velocity = np.asarray(lift["velocity"], dtype=float)
     angle = math.degrees(math.acos(min(abs(float(direction @ velocity)) / float(np.linalg.norm(velocity)), 1.0)))
-    coefficient = abs(params["magnus"]["lift_coefficient"]["value"])
-    spin = float(np.linalg.norm(value)) / coefficient if coefficient > 0 else float("inf")
-    return [f"  a ball's lift: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) rad/s; "
+    coefficient = params["magnus"]["lift_coefficient"]["value"]
+    spin = float(np.linalg.norm(value)) / abs(coefficient) if coefficient else float("inf")
+    return [f"  magnus on a ball: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) rad/s; "
             f"across the direction it sees least ({angle:.0f}° from the initial velocity: a spin along the "
             f"flight makes no lift) {across:.2f} ± {across_std:.2f} rad/s, along it ± {along_std:.3g}. Not C_L "
-            f"and the spin apart: the C_L above goes with the spin the fit chose, {spin:.1f} rad/s"]
+            f"and the spin apart: they trade (here C_L {coefficient:.3g} with the spin the fit chose, {spin:.1f} "
+            f"rad/s)"]
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
@@ -1762,11 +1763,13 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     label = "Beat the noise on top of that poor fit (not a verdict)" \
         if withheld_iou is not None and selection.verdict else "Verdict"
     left = unexplained is not None and bool(unexplained["channels"])
-    lines += verdict_lines(selection, final.params, label, explained=not left)
+    lift = ball_lift_lines(selection.verdict, final.params, final.payload.get("ball_lift")) if video.hidden else []
+    # a ball's C_L trades with its unseen spin: its lift vector's line stands for it
+    shown = {**final.params, "magnus": {}} if lift else final.params
+    lines += verdict_lines(selection, shown, label, explained=not left)
     times = video.problem.times.detach().cpu().numpy()
     lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
-    if video.hidden:
-        lines += ball_lift_lines(selection.verdict, final.params, final.payload.get("ball_lift"))
+    lines += lift
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     # a ball's lift coefficient trades with the spin the fit tried, which the video does not see
