@@ -488,6 +488,9 @@ def test_a_held_out_veto_says_what_the_fit_before_the_held_out_part_reads():
     assert not_named_lines(both, lambda s: "7.00 -> 9.00", lambda s: "")[0].endswith(
         "; fitted without the held-out end its drag_coefficient reads 1.636, without the held-out start its "
         "drag_coefficient reads 0.93 (0.762 on all the data).")
+    # an effect whose values mean nothing alone (a ball's lift coefficient) is not quoted
+    assert not_named_lines(both, lambda s: "7.00 -> 9.00", lambda s: "", no_values=("quadratic_drag",))[0].endswith(
+        "(7.00 -> 9.00, -29 %).")
     none = select_effects(Overshoots(None), SelectionSettings(min_heldout_gain=-0.05, heldout_noise=1.5))
     assert none.steps[0].scores["quadratic_drag"]["heldout_params"] is None  # no split fit given
     plain = not_named_lines(none, lambda s: "7.00 -> 9.00", lambda s: "")[0]

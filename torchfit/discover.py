@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -763,11 +763,13 @@ def _train_values(name: str, score: dict) -> str:
     return "; fitted " + ", ".join(parts) + " (" + ", ".join(f"{total[p]:.4g}" for p in shown) + " on all the data)"
 
 
-def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread: Callable[[dict], str]) -> list[str]:
+def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread: Callable[[dict], str],
+                    no_values: Collection[str] = ()) -> list[str]:
     """Per round: every candidate that lowers the BIC by more than the threshold and is not
     named, with the tests it failed in words, then the round's three strongest candidates.
     ``heldout(score)`` words the held-out errors before -> after, ``spread(score)`` the stretch
-    the evidence rests on."""
+    the evidence rests on; the effects in ``no_values`` are not quoted with their train fits'
+    values (a ball's lift coefficient, which trades with its unseen spin)."""
     lines = []
     for step in selection.steps:
         for name, score in step.scores.items():
@@ -785,8 +787,9 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
                                f"({heldout(score)}; deviance {score['heldout_deviance_before']:.1f} -> "
                                f"{score['heldout_deviance_after']:.1f}{logdet})")
             elif "heldout" in fails:
+                values = "" if name in no_values else _train_values(name, score)
                 reasons.append(f"it does not predict the held-out data well enough ({heldout(score)}, "
-                               f"{100 * score['heldout_gain']:+.0f} %){_train_values(name, score)}")
+                               f"{100 * score['heldout_gain']:+.0f} %){values}")
             if "wald" in fails:
                 reasons.append(f"its fitted value is within its own uncertainty of none (Wald chi2 "
                                f"{score['wald_chi2']:.1f} against a chi2 drop of {score['delta_chi2']:.1f}): the refit "

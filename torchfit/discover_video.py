@@ -1815,5 +1815,6 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         first, last = (int(frames[i]) for i in score["weakest_block"])
         return f"frames {first}-{last} of the fitted span"
     lines += not_named_lines(selection, lambda score: f"{score['heldout_rms_before']:.2f} -> "
-                             f"{score['heldout_rms_after']:.2f} noise floors", spread)
+                             f"{score['heldout_rms_after']:.2f} noise floors", spread,
+                             no_values=("magnus",) if video.hidden else ())
     return lines
