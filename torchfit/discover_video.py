@@ -785,8 +785,9 @@ class VideoProblem:
         if not self.hidden:
             return frozen
         held = {"delta"} | (set() if revealed(list(model.values)) else {"omega"})
+        columns = _state_columns(model.cands)
         for name in held:
-            frozen[_state_columns(model.cands)[name]] = True
+            frozen[columns[name]] = True
         return frozen
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
@@ -1014,14 +1015,16 @@ class VideoProblem:
         frames = len(held_resid) - len(self.prior_terms(held_model.nuisances))  # the prior rows come last
         return predictive_terms(held_resid[:frames], held_jac[:frames], cov)
 
-    def _lift_vector(self, model: _Model, cov: Tensor, column: int) -> tuple[Tensor, Tensor]:
-        """A sphere's Magnus lift whose spin only the lift reveals, as the video sees it: the (3,)
-        lift vector ``C_L ω`` (rad/s, world frame) and its (3, 3) covariance, carried from
-        ``C_L``'s and the spin's (``cov``, in the Jacobian's scaled units: its column ``column``
-        and the spin's columns) by the delta method. ``C_L`` alone means nothing there: it trades
-        with the size of the spin, which the video does not see (its standard error read 0.1 to
-        490 on the concealed balls, and a ball spinning at 40 rad/s with ΔBIC 561 had its lift
-        turned away by ``C_L``'s Wald test; experiments/discover/HISTORY.md, thirty-fourth
+    def _ball_lift(self, model: _Model, cov: Tensor, column: int) -> tuple[float, dict]:
+        """A sphere's Magnus lift whose spin only the lift reveals, as the video sees it: the
+        Wald statistic of the (3,) lift vector ``C_L ω`` (rad/s, world frame) against none, and
+        the vector as ``discover.json`` stores it: ``value`` and ``std`` (3,) rad/s, ``covariance``
+        (3, 3), carried from ``C_L``'s and the spin's (``cov``, in the Jacobian's scaled units: its
+        column ``column`` and the spin's columns) by the delta method, and the fit's initial
+        ``velocity`` (3,) m/s, across which the lift acts. ``C_L`` alone means nothing there: it
+        trades with the size of the spin, which the video does not see (its standard error read
+        0.1 to 490 on the concealed balls, and a ball spinning at 40 rad/s with ΔBIC 561 had its
+        lift turned away by ``C_L``'s Wald test; experiments/discover/HISTORY.md, thirty-fourth
         session)."""
         spin_columns = _state_columns(model.cands)["omega"]
         lift = float(torch.as_tensor(model.values["magnus"]["lift_coefficient"]).reshape(()))
@@ -1030,13 +1033,7 @@ class VideoProblem:
         units = torch.tensor([EFFECT_SCALES["lift_coefficient"], *[SCALES["omega"]] * 3], dtype=torch.float64)
         block = cov.cpu()[index][:, index] * torch.outer(units, units)  # (4, 4): C_L, then the spin's three
         grad = torch.cat((spin[:, None], lift * torch.eye(3, dtype=torch.float64)), 1)  # (3, 4) d(C_L ω)/d(C_L, ω)
-        return lift * spin, grad @ block @ grad.T
-
-    def _ball_lift(self, model: _Model, cov: Tensor, column: int) -> tuple[float, dict]:
-        """The Wald statistic of a sphere's lift vector (:meth:`_lift_vector`) against none, and
-        the vector as ``discover.json`` stores it: ``value`` and ``std`` (3,) rad/s, ``covariance``
-        (3, 3), and the fit's initial ``velocity`` (3,) m/s, across which the lift acts."""
-        value, vector_cov = self._lift_vector(model, cov, column)
+        value, vector_cov = lift * spin, grad @ block @ grad.T
         wald = wald_statistic(value, torch.zeros(3, dtype=torch.float64), vector_cov)
         return wald, {"value": value.tolist(), "std": vector_cov.diagonal().clamp(min=0).sqrt().tolist(),
                       "covariance": vector_cov.tolist(),
@@ -1135,7 +1132,6 @@ class VideoProblem:
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
                                  "held_channels": held_channels, "ball_lift": std[3],
-                                 "initial": self._initial(model),
                                  "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
                                  "heldout_centroid_px": float(np.mean(split_centroid)),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -1503,7 +1499,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params,
-                    "ball_lift": f.payload.get("ball_lift"), "initial": f.payload.get("initial")}
+                    "ball_lift": f.payload.get("ball_lift"), "initial": video._initial(f.payload["model"])}
                    for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
@@ -1763,19 +1759,19 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     label = "Beat the noise on top of that poor fit (not a verdict)" \
         if withheld_iou is not None and selection.verdict else "Verdict"
     left = unexplained is not None and bool(unexplained["channels"])
-    lift = ball_lift_lines(selection.verdict, final.params, final.payload.get("ball_lift")) if video.hidden else []
-    # a ball's C_L trades with its unseen spin: its lift vector's line stands for it
-    shown = {**final.params, "magnus": {}} if lift else final.params
+    # on a ball Magnus's C_L trades with the spin the video does not see: never quoted alone
+    traded = ("magnus",) if video.hidden else ()
+    lift = ball_lift_lines(selection.verdict, final.params, final.payload.get("ball_lift"))
+    shown = {**final.params, "magnus": {}} if lift else final.params  # its lift vector's line stands for it
     lines += verdict_lines(selection, shown, label, explained=not left)
     times = video.problem.times.detach().cpu().numpy()
     lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
     lines += lift
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
-    # a ball's lift coefficient trades with the spin the fit tried, which the video does not see
-    no_size = {"magnus": "a ball's lift is the vector C_L w, and the video does not see its spin"} \
-        if video.hidden else None
-    lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape), no_size=no_size)
+    lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape),
+                         no_size={name: "a ball's lift is the vector C_L w, and the video does not see its spin"
+                                  for name in traded})
     lines.append(f"Evidence: held-out centroid error {base.payload['heldout_centroid_px']:.2f} px -> "
                  f"{final.payload['heldout_centroid_px']:.2f} px; chi2 per observation "
                  f"{base.rss / max(base.n_obs, 1):.2f} -> {final.rss / max(final.n_obs, 1):.2f} "
@@ -1816,5 +1812,5 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         return f"frames {first}-{last} of the fitted span"
     lines += not_named_lines(selection, lambda score: f"{score['heldout_rms_before']:.2f} -> "
                              f"{score['heldout_rms_after']:.2f} noise floors", spread,
-                             no_values=("magnus",) if video.hidden else ())
+                             no_values=traded)
     return lines

@@ -32,7 +32,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 SIX = (0, 1, 2, 3, 4, 5)
 
-from concealed import ball_lift  # noqa: E402
+from concealed import ball_lift, spin_hidden  # noqa: E402
 
 
 def _scalar_rows(truth: dict, fitted_of) -> list[tuple[str, str, float, float, float]]:
@@ -73,9 +73,8 @@ def unselected_rows(content: dict) -> list[tuple[str, str, float, float, float]]
     vector, a truth of 0, or a run that did not score the effect; none for a ball's lift, whose
     C_L trades with its unseen spin)."""
     effects = content.get("effects", {})
-    ball = (content.get("truth_motion") or {}).get("shape") == "sphere"
     truth = {e: p for e, p in (content.get("truth_effects") or {}).items()
-             if effects.get(e) and not (ball and e == "magnus")}
+             if effects.get(e) and not (spin_hidden(content) and e == "magnus")}
     return _scalar_rows(truth, lambda effect: effects[effect][0]["params"].get(effect, {}))
 
 

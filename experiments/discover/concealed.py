@@ -216,12 +216,17 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
     return {"recording": name, "truth": truth, "verdict": verdict, "top_delta_bic": [top, top_bic, top_thirds],
             "thirds_rule": thirds, "indistinguishable": content["indistinguishable"],
             "truth_effects": content.get("truth_effects", {}),
-            "spin_hidden": content.get("truth_motion", {}).get("shape") == "sphere",
+            "spin_hidden": spin_hidden(content),
             "verdict_withheld": content.get("verdict_withheld", []), "detectable_above": limits,
             "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
             "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {})}
+
+
+def spin_hidden(content: dict) -> bool:
+    """Whether a run's (``discover.json``'s) recording is a ball, whose spin video does not see."""
+    return (content.get("truth_motion") or {}).get("shape") == "sphere"
 
 
 def ball_lift(content: dict) -> dict | None:
