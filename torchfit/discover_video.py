@@ -163,6 +163,17 @@ LM_FLOOR = 1e-3
 # 379.7, in 15 iterations; from C_d 0.3 it reached 0.42, cost 352.6 (measured, floor 1e-3).
 SCREEN_ITERATIONS = 4
 
+# A sphere's Magnus lift, where only the lift shows its spin, is fitted with ``C_L`` held at this
+# value (a gauge) and the spin free from zero, which is no lift: the data see the vector ``C_L ω``
+# alone, so ``C_L`` and the spin's size trade exactly, and with both free LM crawled along that
+# curved valley (fresh-9 magnus_ball, the engine's masks: cost 64.11 after a refit's 15
+# iterations, 57.73 after 75 more). Held, the spin carries ``C_L ω / LIFT_GAUGE``; 30 makes a spin
+# step (``SCALES["omega"]``, 0.5 rad/s) move ``C_L ω`` by 15 rad/s, as a ``C_L`` step of 0.3 did at
+# a ball's 50 rad/s. Then the same refit ends at 57.73 (video: 177.9, 175.8 after 75 more
+# iterations, against 181.7 with both free), in a third of the time
+# (experiments/discover/HISTORY.md, thirty-sixth session).
+LIFT_GAUGE = 30.0
+
 
 def _as_float64(problem: Problem) -> Problem:
     """The same problem with float64 tensors (mesh and body rebuilt from the shape)."""
@@ -434,6 +445,19 @@ def _state_columns(cands: Candidates) -> dict[str, slice]:
         size = getattr(cands, name).shape[1]
         columns[name] = slice(offset, offset + size)
         offset += size
+    return columns
+
+
+def _effect_columns(values: dict) -> dict[str, dict[str, slice]]:
+    """The refits' Jacobian columns of each effect parameter in ``values`` (``{effect:
+    {parameter: value}}``, a model's): after the 14 of the state, in their order."""
+    columns, offset = {}, 14
+    for name, params in values.items():
+        columns[name] = {}
+        for pname, value in params.items():
+            size = torch.as_tensor(value).numel()
+            columns[name][pname] = slice(offset, offset + size)
+            offset += size
     return columns
 
 
@@ -775,8 +799,9 @@ class VideoProblem:
         return 14 + self._extra_count(model) - (self.hidden - seen)
 
     def _frozen(self, model: _Model) -> Tensor:
-        """(14 + P + 2,) True for the columns the refits hold fixed: a sphere's orientation, and its
-        spin unless an effect reveals it (:meth:`_free_count`). Left free, these directions, which
+        """(14 + P + 2,) True for the columns the refits hold fixed: a sphere's orientation, its
+        spin unless an effect reveals it (:meth:`_free_count`), and ``C_L`` where only Magnus lift
+        reveals the spin (at :data:`LIFT_GAUGE`: the spin carries ``C_L ω``). Left free, these directions, which
         the data saw only through the mesh's facets, made the refits wander from run to run
         (first-set drag_foam_ball: C_d 0.53, 0.87 and 0.74 in three runs, each ± 0.1); a round
         shape is now drawn as its sphere (:attr:`torchfit.render.RenderMesh.sphere`), which no
@@ -788,6 +813,8 @@ class VideoProblem:
         columns = _state_columns(model.cands)
         for name in held:
             frozen[columns[name]] = True
+        if _spin_seen_by_lift_alone(model.values):  # C_L held at its gauge (LIFT_GAUGE)
+            frozen[_effect_columns(model.values)["magnus"]["lift_coefficient"]] = True
         return frozen
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
@@ -860,6 +887,7 @@ class VideoProblem:
             shifted[n_effect + k] = step
             _, _, nuisances = self._build(model, zero_state, shifted)
             jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, nuisances, mask)[0] - base) / step
+        jac[:, self._frozen(model).to(jac.device)] = 0.0  # a held effect parameter's column too
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
@@ -1020,12 +1048,12 @@ class VideoProblem:
         Wald statistic of the (3,) lift vector ``C_L ω`` (rad/s, world frame) against none, and
         the vector as ``discover.json`` stores it: ``value`` and ``std`` (3,) rad/s, ``covariance``
         (3, 3), carried from ``C_L``'s and the spin's (``cov``, in the Jacobian's scaled units: its
-        column ``column`` and the spin's columns) by the delta method, and the fit's initial
-        ``velocity`` (3,) m/s, across which the lift acts. ``C_L`` alone means nothing there: it
-        trades with the size of the spin, which the video does not see (its standard error read
-        0.1 to 490 on the concealed balls, and a ball spinning at 40 rad/s with ΔBIC 561 had its
-        lift turned away by ``C_L``'s Wald test; experiments/discover/HISTORY.md, thirty-fourth
-        session)."""
+        column ``column`` and the spin's columns) by the delta method (the refits hold ``C_L`` at
+        :data:`LIFT_GAUGE`, its variance zero), and the fit's initial ``velocity`` (3,) m/s, across
+        which the lift acts. ``C_L`` alone means nothing there: it trades with the size of the
+        spin, which the video does not see (fitted free, its standard error read 0.1 to 490 on the
+        concealed balls, and a ball spinning at 40 rad/s with ΔBIC 561 had its lift turned away by
+        ``C_L``'s Wald test; experiments/discover/HISTORY.md, thirty-fourth session)."""
         spin_columns = _state_columns(model.cands)["omega"]
         lift = float(torch.as_tensor(model.values["magnus"]["lift_coefficient"]).reshape(()))
         spin = model.cands.omega[0].detach().cpu().to(torch.float64)
@@ -1151,15 +1179,19 @@ class VideoProblem:
         """The starts for refits that each add the effects ``new`` to ``model`` on the frames in
         ``mask``, one per ``(model, new, mask)`` request.
 
-        Starts: ``model`` (the new effects at null) and, for each parameter component of ``new``,
-        the same moved one ``EFFECT_SCALES`` unit either side. Each runs ``SCREEN_ITERATIONS`` LM
+        Starts: ``model`` (the new effects at null) and, for each parameter component of ``new``
+        that the refits do not hold (:meth:`_frozen`), the same moved one ``EFFECT_SCALES`` unit
+        either side. Each runs ``SCREEN_ITERATIONS`` LM
         iterations on its request's frames; returns, per request, the start with the lowest cost
         and where its screening ended (every request's starts run side by side, :meth:`_lm_many`)."""
         starts, owners = [], []
         for k, (model, new, _) in enumerate(requests):
             starts.append(model)
+            frozen, columns = self._frozen(model), _effect_columns(model.values)
             for name in new:
                 for pname, value in model.values[name].items():
+                    if bool(frozen[columns[name][pname]].all()):  # held (LIFT_GAUGE): nothing to screen
+                        continue
                     value = torch.as_tensor(value, dtype=torch.float64)
                     for index in range(value.numel()):
                         for sign in (1.0, -1.0):
@@ -1177,14 +1209,18 @@ class VideoProblem:
                 best[k] = (cost, start, screened)
         return [(start, screened) for _, start, screened in best]
 
-    @staticmethod
-    def _extend(start: _Model, effects: tuple[str, ...]) -> _Model:
-        """``start`` with ``effects`` (those it lacks at their null values)."""
+    def _extend(self, start: _Model, effects: tuple[str, ...]) -> _Model:
+        """``start`` with ``effects`` (those it lacks at their null values; a sphere's Magnus lift
+        that alone reveals its spin at ``C_L`` = :data:`LIFT_GAUGE` and no spin, which is no lift)."""
         values = {name: dict(start.values[name]) for name in effects if name in start.values}
         for name in effects:
             if name not in values:
                 values[name] = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in EFFECTS[name].null_params.items()}
-        return _Model(start.cands.select(torch.zeros(1, dtype=torch.long)), values, start.nuisances)
+        cands = start.cands.select(torch.zeros(1, dtype=torch.long))
+        if self.hidden and "magnus" not in start.values and _spin_seen_by_lift_alone(values):
+            values["magnus"]["lift_coefficient"] = torch.tensor(LIFT_GAUGE, dtype=torch.float64)
+            cands.omega.zero_()
+        return _Model(cands, values, start.nuisances)
 
     def fit(self, effects: tuple[str, ...], warm: ModelFit | None, searched: FitResult | None = None) -> ModelFit:
         """Fit on all used frames (the criterion) and on all but the held-out ones (the prediction).
@@ -1735,8 +1771,8 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> 
     return [f"  magnus on a ball: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) rad/s; "
             f"across the direction it sees least ({angle:.0f}° from the initial velocity: a spin along the "
             f"flight makes no lift) {across:.2f} ± {across_std:.2f} rad/s, along it ± {along_std:.3g}. Not C_L "
-            f"and the spin apart: they trade (here C_L {coefficient:.3g} with the spin the fit chose, {spin:.1f} "
-            f"rad/s)"]
+            f"and the spin apart: they trade (the fit holds C_L at {coefficient:.3g}, so its spin, {spin:.1f} "
+            f"rad/s, is C_L w's size)"]
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
