@@ -799,7 +799,7 @@ def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():
     line = dv.ball_lift_lines(["magnus"], params, ball_lift)
     assert len(line) == 1 and "C_L w = (0.00, -3.00, 4.00) rad/s" in line[0]
     assert "across the direction it sees least (10° from the initial velocity" in line[0]
-    assert "3.00 ± 0.20 rad/s, along it ± 30." in line[0] and "holds C_L at -0.5, so its spin, 10.0 rad/s" in line[0]
+    assert "3.00 ± 0.20 rad/s, along it ± 30." in line[0] and "holds C_L at -0.5, and its spin, 10 rad/s, is C_L w's size over that" in line[0]
     assert dv.ball_lift_lines(["magnus", "com_offset"], params, ball_lift) == []
     assert dv.ball_lift_lines(["quadratic_drag"], params, ball_lift) == []
     # the test the criterion applies: magnus alone on a ball takes the lift vector's, with an
@@ -829,6 +829,8 @@ def test_a_balls_lift_is_fitted_with_its_coefficient_held():
     used = video.problem.used.cpu().numpy()
     fitted, resid, jac = video._lm(start, used, video.iterations)
     assert float(fitted.values["magnus"]["lift_coefficient"]) == dv.LIFT_GAUGE and not jac[:, 14].any()
+    described = video._describe(fitted, {})
+    assert described["magnus"]["lift_coefficient"]["held"] is True
     true = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)),
                      {"magnus": {"lift_coefficient": torch.tensor(8.0, dtype=F64)}}, fitted.nuisances)
     at_truth, _ = video._jacobian(true, video.problem.used)
@@ -837,6 +839,7 @@ def test_a_balls_lift_is_fitted_with_its_coefficient_held():
     assert video._cost(resid) - video._cost(more) < 1e-3 * video._cost(resid)
     both = video._extend(base, ("magnus", "com_offset"))
     assert not video._frozen(both)[14] and float(both.values["magnus"]["lift_coefficient"]) == 0.0
+    assert "held" not in video._describe(both, {})["magnus"]["lift_coefficient"]
 
 
 @pytest.mark.parametrize("ball", [False, True])

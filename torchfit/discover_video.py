@@ -801,7 +801,7 @@ class VideoProblem:
     def _frozen(self, model: _Model) -> Tensor:
         """(14 + P + 2,) True for the columns the refits hold fixed: a sphere's orientation, its
         spin unless an effect reveals it (:meth:`_free_count`), and ``C_L`` where only Magnus lift
-        reveals the spin (at :data:`LIFT_GAUGE`: the spin carries ``C_L ω``). Left free, these directions, which
+        reveals the spin (at :data:`LIFT_GAUGE`). Left free, the orientation and spin, which
         the data saw only through the mesh's facets, made the refits wander from run to run
         (first-set drag_foam_ball: C_d 0.53, 0.87 and 0.74 in three runs, each ± 0.1); a round
         shape is now drawn as its sphere (:attr:`torchfit.render.RenderMesh.sphere`), which no
@@ -1113,7 +1113,10 @@ class VideoProblem:
         return params_dict(cands.state(body)[0], cands.gravity(self.problem.g)[0])
 
     def _describe(self, model: _Model, std: dict) -> dict:
-        params = {}
+        """``{effect: {parameter: {value, std, alone_std, unit}}}`` of ``model``'s effects, with
+        ``held: true`` on a parameter the refits hold (:meth:`_frozen`: a ball's ``C_L`` where
+        only its lift shows the spin; the lift is then in the model's ``ball_lift``)."""
+        params, frozen, columns = {}, self._frozen(model), _effect_columns(model.values)
         for name, values in model.values.items():
             params[name] = {}
             for pname, value in values.items():
@@ -1123,7 +1126,7 @@ class VideoProblem:
                     "value": value.tolist() if value.numel() > 1 else float(value),
                     "std": spread, "alone_std": alone,
                     "unit": EFFECTS[name].units.get(pname, ""),
-                }
+                } | ({"held": True} if bool(frozen[columns[name][pname]].all()) else {})
         return params
 
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict, dict | None],
@@ -1181,9 +1184,9 @@ class VideoProblem:
 
         Starts: ``model`` (the new effects at null) and, for each parameter component of ``new``
         that the refits do not hold (:meth:`_frozen`), the same moved one ``EFFECT_SCALES`` unit
-        either side. Each runs ``SCREEN_ITERATIONS`` LM
-        iterations on its request's frames; returns, per request, the start with the lowest cost
-        and where its screening ended (every request's starts run side by side, :meth:`_lm_many`)."""
+        either side. Each runs ``SCREEN_ITERATIONS`` LM iterations on its request's frames;
+        returns, per request, the start with the lowest cost and where its screening ended (every
+        request's starts run side by side, :meth:`_lm_many`)."""
         starts, owners = [], []
         for k, (model, new, _) in enumerate(requests):
             starts.append(model)
@@ -1771,8 +1774,8 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> 
     return [f"  magnus on a ball: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) rad/s; "
             f"across the direction it sees least ({angle:.0f}° from the initial velocity: a spin along the "
             f"flight makes no lift) {across:.2f} ± {across_std:.2f} rad/s, along it ± {along_std:.3g}. Not C_L "
-            f"and the spin apart: they trade (the fit holds C_L at {coefficient:.3g}, so its spin, {spin:.1f} "
-            f"rad/s, is C_L w's size)"]
+            f"and the spin apart: they trade (the fit holds C_L at {coefficient:.3g}, and its spin, {spin:.3g} "
+            f"rad/s, is C_L w's size over that)"]
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
