@@ -312,11 +312,13 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     assert not conc.below_limit(conc.row("lens_x", lens))  # two numbers: never called below
 
 
-def test_a_balls_lift_is_compared_as_its_lift_vector_across_the_velocity():
+def test_a_balls_lift_is_compared_across_the_direction_the_video_sees_least():
     """A ball's named lift is compared with the engine's as the video measures it: the size of
-    ``C_L ω``'s part across the initial velocity (each side's own velocity), within 25 % counted
-    as a coefficient, the angle beside it; its round-one limit (a C_L that trades with the spin)
-    gives no limit ratio; coefficients.py reads the same number and leaves the ball's C_L out."""
+    ``C_L ω``'s part across the direction the run's covariance knows least (both vectors across
+    that same direction), within 25 % counted as a coefficient, the angle beside it; the part
+    across each side's own initial velocity (the count before the thirty-sixth session) is kept
+    beside it. Its round-one limit (a C_L that trades with the spin) gives no limit ratio;
+    coefficients.py reads the same number and leaves the ball's C_L out."""
     sys.path.insert(0, str(CONCEALED.parent))
     conc = _load("concealed", CONCEALED.parent / "concealed.py")
     coefficients = _load("coefficients", CONCEALED.parent / "coefficients.py")
@@ -325,18 +327,21 @@ def test_a_balls_lift_is_compared_as_its_lift_vector_across_the_velocity():
     content["truth_motion"] = {"shape": "sphere", "velocity": [0.0, 0.0, 2.0], "angular_velocity": [0.0, -1.5, 2.0]}
     content["effects"]["magnus"] = [{"delta_bic": 50.0, "detectable_above": {"lift_coefficient": 0.1}}]
     content["models"][-1]["params"] = {"magnus": {"lift_coefficient": {"value": -0.3, "std": 9.0}}}
-    # fitted (2, -2, 7) across (0, 0, 1): (2, -2, 0); the truth's (0, -3, 4) across z: (0, -3, 0)
+    # fitted (2, -2, 7), known least along x (90° from the velocity, z): across x (0, -2, 7), size
+    # √53, std √(53 · 0.04) / √53 = 0.2; the truth's (0, -3, 4) across x: 5, 20.9° from it
     content["models"][-1]["ball_lift"] = {"value": [2.0, -2.0, 7.0], "velocity": [0.0, 0.0, 1.0],
-                                          "covariance": [[0.04, 0, 0], [0, 0.04, 0], [0, 0, 1.0]]}
+                                          "covariance": [[1.0, 0, 0], [0, 0.04, 0], [0, 0, 0.04]]}
     r = conc.row("magnus_ball", content)
     lift = r["params"]["magnus"]["lift_across"]
-    assert lift["fitted"] == pytest.approx(8 ** 0.5) and lift["true"] == pytest.approx(3.0)
-    assert lift["std"] == pytest.approx(0.2) and lift["angle_deg"] == pytest.approx(45.0)
-    # the covariance knows z least: across it, the same here
-    assert lift["least_seen"] == {"fitted": pytest.approx(8 ** 0.5), "std": pytest.approx(0.2), "true": pytest.approx(3.0)}
-    assert conc.score([r])["coefficients_within_25pc"] == [1, 1]  # 2.83 against 3
+    assert lift["fitted"] == pytest.approx(53 ** 0.5) and lift["true"] == pytest.approx(5.0)
+    assert lift["std"] == pytest.approx(0.2) and lift["angle_deg"] == pytest.approx(20.925, abs=1e-3)
+    assert lift["direction_deg"] == pytest.approx(90.0)
+    # across each initial velocity (z): (2, -2, 0) against (0, -3, 0), 45° apart
+    assert lift["across_velocity"] == {"fitted": pytest.approx(8 ** 0.5), "std": pytest.approx((4.16 / 8) ** 0.5),
+                                       "true": pytest.approx(3.0), "angle_deg": pytest.approx(45.0)}
+    assert conc.score([r])["coefficients_within_25pc"] == [0, 1]  # 7.28 against 5
     assert conc.limit_ratio(r) is None and r["spin_hidden"]
-    assert coefficients.coefficient_rows(content) == [("magnus", "lift_across", 3.0, pytest.approx(8 ** 0.5),
+    assert coefficients.coefficient_rows(content) == [("magnus", "lift_across", 5.0, pytest.approx(53 ** 0.5),
                                                       pytest.approx(0.2))]
     assert coefficients.unselected_rows(content) == []
     # a spinning body that shows its spin keeps its C_L, its limit and its ratio

@@ -62,7 +62,8 @@ def coefficient_rows(content: dict) -> list[tuple[str, str, float, float, float]
     lift = ball_lift(content)
     if lift is None:
         return rows
-    # a ball's C_L trades with its unseen spin: its lift is the vector C_L ω's part across v
+    # a ball's C_L trades with its unseen spin: its lift is the vector C_L ω's part across the
+    # direction the video sees least (concealed.ball_lift)
     return [r for r in rows if r[:2] != ("magnus", "lift_coefficient")] + \
         [("magnus", "lift_across", lift["true"], lift["fitted"], lift["std"])]
 

@@ -203,7 +203,7 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
             entry = params[effect]["offset"]
             entry["fitted"] = _aligned(recordings / name, entry["fitted"], entry["true"])
         lift = ball_lift(content) if effect == "magnus" else None
-        if lift is not None:  # a ball: its lift vector's part across v
+        if lift is not None:  # a ball: its lift vector's part across the direction it is seen least
             params[effect] = {"lift_across": lift}
     # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
     limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
@@ -231,27 +231,36 @@ def spin_hidden(content: dict) -> bool:
 
 def ball_lift(content: dict) -> dict | None:
     """A run's (``discover.json``'s ``content``) ball lift in its final model against the engine's,
-    as the video measures it: ``{"fitted", "std", "true", "angle_deg", "least_seen"}``, the size of
-    the lift vector ``C_L ω``'s part across the initial velocity (rad/s), the angle between the
-    fitted and the true part (degrees), and ``least_seen`` ``{"fitted", "std", "true"}`` the size
-    of its part across the direction the run's covariance knows least
-    (:func:`torchfit.discover_video.least_seen`). None unless the final model holds a ball's lift (``ball_lift``) and
+    as the video measures it: ``{"fitted", "std", "true", "angle_deg", "direction_deg",
+    "across_velocity"}``. The first three are the size of the lift vector ``C_L ω``'s part across
+    the direction the run's covariance knows least (:func:`torchfit.discover_video.least_seen`,
+    about the flight's: its angle to the fitted initial velocity is ``direction_deg``), its
+    standard error and the truth's part across that same direction, rad/s; ``angle_deg`` the
+    angle between the fitted and the true part. This is the count since the thirty-sixth session
+    (a rule fixed before fresh sets 12-15 were made, HISTORY.md). ``across_velocity`` holds the
+    count before it, each vector's part across its own initial velocity (``fitted``, ``std``,
+    ``true``, ``angle_deg``), which takes in the error of the direction the video does not see,
+    14-19° from the velocity. None unless the final model holds a ball's lift (``ball_lift``) and
     the engine hid one."""
     fitted, truth = content["models"][-1].get("ball_lift"), content.get("truth_motion")
     lift = (content.get("truth_effects") or {}).get("magnus")
     if not fitted or not truth or not lift:
         return None
+    value, covariance = np.asarray(fitted["value"], dtype=float), fitted["covariance"]
     true_vector = lift["lift_coefficient"] * np.asarray(truth["angular_velocity"], dtype=float)
-    size, std = lift_across(fitted["value"], fitted["velocity"], fitted["covariance"])
-    true_size, _ = lift_across(true_vector, truth["velocity"])
-    a, b = across_velocity(fitted["value"], fitted["velocity"]), across_velocity(true_vector, truth["velocity"])
-    cosine = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-300)
-    # the same across the direction the run's covariance knows least (both sides across it)
-    direction = least_seen(fitted["covariance"])
-    seen, seen_std = lift_across(fitted["value"], direction, fitted["covariance"])
-    return {"fitted": size, "std": std, "true": true_size,
-            "angle_deg": math.degrees(math.acos(min(max(cosine, -1.0), 1.0))),
-            "least_seen": {"fitted": seen, "std": seen_std, "true": lift_across(true_vector, direction)[0]}}
+
+    def compared(fitted_direction, true_direction) -> dict:
+        size, std = lift_across(value, fitted_direction, covariance)
+        a, b = across_velocity(value, fitted_direction), across_velocity(true_vector, true_direction)
+        cosine = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-300)
+        return {"fitted": size, "std": std, "true": float(np.linalg.norm(b)),
+                "angle_deg": math.degrees(math.acos(min(max(cosine, -1.0), 1.0)))}
+
+    direction, velocity = least_seen(covariance), np.asarray(fitted["velocity"], dtype=float)
+    tilt = abs(float(direction @ velocity)) / float(np.linalg.norm(velocity))
+    return compared(direction, direction) | {
+        "direction_deg": math.degrees(math.acos(min(tilt, 1.0))),
+        "across_velocity": compared(fitted["velocity"], truth["velocity"])}
 
 
 def _without_third(score: dict) -> float | None:
@@ -296,7 +305,8 @@ def table(rows: list[dict]) -> str:
 
 
 # The coefficients the issue asks to be within 25 % of the engine's
-# (a ball's lift as the size of its lift vector's part across the velocity, rad/s: ball_lift)
+# (a ball's lift as the size of its lift vector's part across the direction the video sees least,
+# rad/s: ball_lift)
 COEFFICIENTS = ("drag_coefficient", "lift_coefficient", "lift_across")
 
 
