@@ -746,6 +746,8 @@ def test_lift_across_standard_error_matches_finite_differences():
     # the direction a covariance knows least: its largest eigenvalue's, up to sign
     least = dv.least_seen(np.diag([1.0, 100.0, 4.0]))
     assert abs(least @ np.array([0.0, 1.0, 0.0])) == pytest.approx(1.0)
+    # its angle to a velocity's line, either way along it
+    assert dv.angle_to_line(least, [0.0, -2.0, 2.0]) == pytest.approx(45.0)
 
 
 def test_a_balls_magnus_lift_is_tested_as_its_lift_vector():

@@ -1754,6 +1754,14 @@ def least_seen(covariance: Sequence[Sequence[float]]) -> np.ndarray:
     return np.linalg.eigh(np.asarray(covariance, dtype=float))[1][:, -1]
 
 
+def angle_to_line(direction: Sequence[float], vector: Sequence[float]) -> float:
+    """Degrees (0-90) between a (3,) unit ``direction``, taken either way, and a (3,) ``vector``'s
+    line (for :func:`least_seen`'s direction against a velocity)."""
+    vector = np.asarray(vector, dtype=float)
+    cosine = abs(float(np.asarray(direction, dtype=float) @ vector)) / float(np.linalg.norm(vector))
+    return math.degrees(math.acos(min(cosine, 1.0)))
+
+
 def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> list[str]:
     """A ball's named Magnus lift as the video sees it, when only the lift reveals the spin: the
     vector ``C_L ω`` (rad/s), its part across the direction the video sees least (about the
@@ -1767,8 +1775,7 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> 
     direction = least_seen(covariance)
     across, across_std = lift_across(value, direction, covariance)
     along_std = math.sqrt(max(float(direction @ covariance @ direction), 0.0))
-    velocity = np.asarray(lift["velocity"], dtype=float)
-    angle = math.degrees(math.acos(min(abs(float(direction @ velocity)) / float(np.linalg.norm(velocity)), 1.0)))
+    angle = angle_to_line(direction, lift["velocity"])
     coefficient = params["magnus"]["lift_coefficient"]["value"]
     spin = float(np.linalg.norm(value)) / abs(coefficient) if coefficient else float("inf")
     return [f"  magnus on a ball: the video sees C_L w = ({', '.join(f'{v + 0.0:.2f}' for v in value)}) rad/s; "

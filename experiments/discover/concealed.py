@@ -64,6 +64,7 @@ from torchfit.discover_video import (
     VIDEO_EFFECTS,
     VIDEO_SELECTION,
     across_velocity,
+    angle_to_line,
     discover_video,
     least_seen,
     lift_across,
@@ -256,11 +257,9 @@ def ball_lift(content: dict) -> dict | None:
         return {"fitted": size, "std": std, "true": float(np.linalg.norm(b)),
                 "angle_deg": math.degrees(math.acos(min(max(cosine, -1.0), 1.0)))}
 
-    direction, velocity = least_seen(covariance), np.asarray(fitted["velocity"], dtype=float)
-    tilt = abs(float(direction @ velocity)) / float(np.linalg.norm(velocity))
-    return compared(direction, direction) | {
-        "direction_deg": math.degrees(math.acos(min(tilt, 1.0))),
-        "across_velocity": compared(fitted["velocity"], truth["velocity"])}
+    direction = least_seen(covariance)
+    return compared(direction, direction) | {"direction_deg": angle_to_line(direction, fitted["velocity"]),
+                                             "across_velocity": compared(fitted["velocity"], truth["velocity"])}
 
 
 def _without_third(score: dict) -> float | None:
