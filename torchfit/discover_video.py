@@ -813,9 +813,15 @@ class VideoProblem:
         columns = _state_columns(model.cands)
         for name in held:
             frozen[columns[name]] = True
-        if _spin_seen_by_lift_alone(model.values):  # C_L held at its gauge (LIFT_GAUGE)
-            frozen[_effect_columns(model.values)["magnus"]["lift_coefficient"]] = True
+        effect_columns = _effect_columns(model.values)
+        for name, pname in self._held(model):
+            frozen[effect_columns[name][pname]] = True
         return frozen
+
+    def _held(self, model: _Model) -> set[tuple[str, str]]:
+        """``(effect, parameter)`` pairs the refits hold at their values: a sphere's ``C_L`` where
+        only Magnus lift reveals its spin (at :data:`LIFT_GAUGE`; the spin carries ``C_L ω``)."""
+        return {("magnus", "lift_coefficient")} if self.hidden and _spin_seen_by_lift_alone(model.values) else set()
 
     def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences).
@@ -836,7 +842,8 @@ class VideoProblem:
         model), whose batched rows share one flight and render."""
         plans, blocks, block_masks = [], [], []
         for model, mask in zip(models, masks):
-            free = torch.nonzero(~self._frozen(model)[:14]).flatten()
+            frozen = self._frozen(model)
+            free = torch.nonzero(~frozen[:14]).flatten()
             n_extra = self._extra_count(model)  # the effects' parameters, then the nuisances
             values = self._stepped_values(model, 1 + len(free), step)
             state = torch.zeros(1 + len(free) + n_extra - len(model.nuisances), 14, dtype=torch.float64)
@@ -853,22 +860,23 @@ class VideoProblem:
                 one, _, moved = self._build(model, torch.zeros(1, 14, dtype=torch.float64), shifted)
                 blocks.append((one, model.values, moved))
                 block_masks.append(mask)
-            plans.append((free, exposure_step))
+            plans.append((frozen, free, exposure_step))
         with torch.no_grad():
             evaluated = iter(self._evaluate(blocks, block_masks))
             out = []
-            for model, mask, (free, exposure_step) in zip(models, masks, plans):
+            for model, mask, (frozen, free, exposure_step) in zip(models, masks, plans):
                 fitted, rows = next(evaluated)
                 exposure_row = None if exposure_step is None else (next(evaluated)[1][0], exposure_step)
-                out.append(self._assemble_jacobian(model, fitted, rows, free, mask, step, exposure_row))
+                out.append(self._assemble_jacobian(model, fitted, rows, frozen, free, mask, step, exposure_row))
             return out
 
-    def _assemble_jacobian(self, model: _Model, fitted: tuple[Tensor, Tensor, Tensor], rows: Tensor, free: Tensor,
-                           mask: Tensor, step: float,
+    def _assemble_jacobian(self, model: _Model, fitted: tuple[Tensor, Tensor, Tensor], rows: Tensor, frozen: Tensor,
+                           free: Tensor, mask: Tensor, step: float,
                            exposure_row: tuple[Tensor, float] | None = None) -> tuple[Tensor, Tensor]:
         """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N: unmoved, the F
         free state columns' steps, the E effect parameters' steps) and their fitted moments; the
         edge bias's and a point spread's columns are computed here from the unmoved render.
+        ``frozen``: the model's :meth:`_frozen` columns (zeroed), ``free`` the state's others.
         ``exposure_row``: a fitted exposure's (N,) row rendered with its fraction moved by the
         step given (scaled units; backward where forward would leave [0, 1])."""
         n_extra = self._extra_count(model)
@@ -887,7 +895,7 @@ class VideoProblem:
             shifted[n_effect + k] = step
             _, _, nuisances = self._build(model, zero_state, shifted)
             jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, nuisances, mask)[0] - base) / step
-        jac[:, self._frozen(model).to(jac.device)] = 0.0  # a held effect parameter's column too
+        jac[:, frozen.to(jac.device)] = 0.0  # a held effect parameter's column too (:meth:`_frozen`)
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
@@ -1116,7 +1124,7 @@ class VideoProblem:
         """``{effect: {parameter: {value, std, alone_std, unit}}}`` of ``model``'s effects, with
         ``held: true`` on a parameter the refits hold (:meth:`_frozen`: a ball's ``C_L`` where
         only its lift shows the spin; the lift is then in the model's ``ball_lift``)."""
-        params, frozen, columns = {}, self._frozen(model), _effect_columns(model.values)
+        params, held = {}, self._held(model)
         for name, values in model.values.items():
             params[name] = {}
             for pname, value in values.items():
@@ -1126,7 +1134,7 @@ class VideoProblem:
                     "value": value.tolist() if value.numel() > 1 else float(value),
                     "std": spread, "alone_std": alone,
                     "unit": EFFECTS[name].units.get(pname, ""),
-                } | ({"held": True} if bool(frozen[columns[name][pname]].all()) else {})
+                } | ({"held": True} if (name, pname) in held else {})
         return params
 
     def _score(self, effects: tuple[str, ...], model: _Model, std: tuple[dict, tuple[float, ...], dict, dict | None],
@@ -1190,10 +1198,10 @@ class VideoProblem:
         starts, owners = [], []
         for k, (model, new, _) in enumerate(requests):
             starts.append(model)
-            frozen, columns = self._frozen(model), _effect_columns(model.values)
+            held = self._held(model)
             for name in new:
                 for pname, value in model.values[name].items():
-                    if bool(frozen[columns[name][pname]].all()):  # held (LIFT_GAUGE): nothing to screen
+                    if (name, pname) in held:  # held (LIFT_GAUGE): nothing to screen
                         continue
                     value = torch.as_tensor(value, dtype=torch.float64)
                     for index in range(value.numel()):
