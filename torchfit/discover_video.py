@@ -309,16 +309,31 @@ def normal_axis_angle(signed: Tensor, cov: Tensor) -> tuple[Tensor, float]:
     return cos2, float(spread / (cuu + cvv))
 
 
+def edge_profile(x: Tensor) -> Tensor:
+    """A pixel's coverage (any shape, in [0, 1]) at signed distance ``x`` pixels inside a moved
+    outline: the unit ramp ``clip(x + 1/2, 0, 1)`` averaged over a unit box of outline positions,
+    ``(x + 1)^2 / 2`` on [-1, 0] and ``1 - (1 - x)^2 / 2`` on [0, 1]; odd about 1/2, continuous
+    with its slope.
+
+    A mask's outline is known only to the pixel: every pixel beside it is at signed distance
+    ±1/2 exactly, so with the ramp itself the moments are piecewise linear in the bias with
+    kinks at 0 and ±1 for all those pixels at once, and a fit started at 0 stayed there (6 of
+    269 stored models ended within 1e-4 px of 0; experiments/discover/HISTORY.md *Thirty-seventh
+    session*). Averaged over where within its pixel the outline lies, the moments are smooth."""
+    return torch.where(x < 0, 0.5 * (x + 1).clamp(min=0) ** 2, 1 - 0.5 * (1 - x).clamp(min=0) ** 2)
+
+
 def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = _EDGE_GRID,
                   shape_grid: Tensor = _EDGE_SHAPE_GRID) -> Tensor:
     """Raw moments of (T, H, W) bool masks with their outline moved inward by each bias of the grids.
 
     A pixel's coverage after moving the outline by ``b = b0 + b1 e cos(2 phi)`` pixels is
-    ``clip(d - b + 1/2, 0, 1)`` with ``d`` its signed distance to the outline (Euclidean; positive
+    :func:`edge_profile` of ``d - b``, ``d`` its signed distance to the outline (Euclidean; positive
     inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the major
     axis and ``e`` the elongation of the (T, 2, 2) covariances ``axes`` (:func:`normal_axis_angle`;
-    discover passes its fitted silhouettes', None takes the masks' own), so ``b = 0`` gives the mask
-    back, ``b > 0`` erodes and ``b < 0`` dilates.
+    discover passes its fitted silhouettes', None takes the masks' own), so ``b = 0`` gives about
+    the mask back (the pixels beside its outline 1/8 nearer one half), ``b > 0`` erodes and ``b <
+    0`` dilates.
 
     Returns:
         (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
@@ -340,22 +355,34 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
                               torch.arange(crop.shape[1], dtype=torch.float64) + x0, indexing="ij")
         weights = torch.stack((torch.ones_like(u), u, v, u * u, u * v, v * v))  # (6, h, w)
         for k in range(len(grid)):  # one b0 at a time: (K1, h, w) coverage
-            cover = (signed - bias[k] + 0.5).clamp(0.0, 1.0)
+            cover = edge_profile(signed - bias[k])
             out[k, :, t] = torch.einsum("jhw,mhw->jm", cover, weights)
     return out
 
 
+def _hermite(table: Tensor, grid: Tensor, value: float) -> Tensor:
+    """``table`` (K, ...) tabulated on the uniform (K,) ``grid`` at ``value`` (clamped to the grid),
+    the first axis interpolated away: a cubic Hermite spline with centred-difference slopes
+    (one-sided at the ends; Catmull-Rom), continuous with its first derivative, so a forward
+    difference of it is its derivative (a linear interpolation's slope jumps at every node, and
+    a fit started on a node stayed there). Returns (...)."""
+    spacing = float(grid[1] - grid[0])
+    position = (min(max(value, float(grid[0])), float(grid[-1])) - float(grid[0])) / spacing
+    low = min(int(position), len(grid) - 2)
+    t = position - low
+
+    def slope(k: int) -> Tensor:  # per node of the grid, per unit of position
+        return 0.5 * (table[min(k + 1, len(grid) - 1)] - table[max(k - 1, 0)]) * (2.0 if k in (0, len(grid) - 1) else 1.0)
+
+    return ((2 * t**3 - 3 * t**2 + 1) * table[low] + (t**3 - 2 * t**2 + t) * slope(low)
+            + (3 * t**2 - 2 * t**3) * table[low + 1] + (t**3 - t**2) * slope(low + 1))
+
+
 def _moments_at(table: Tensor, bias: tuple[float, ...]) -> tuple[Tensor, Tensor, Tensor]:
     """Area (T,), centroid (T, 2), covariance (T, 2, 2) at the edge bias ``(b0, b1)`` pixels, the
-    first two of ``bias`` (a model's nuisances; bilinear in the (K0, K1, T, 6) table of
-    :func:`_edge_moments`)."""
-    raw = table
-    for grid, value in ((_EDGE_GRID, bias[0]), (_EDGE_SHAPE_GRID, bias[1])):
-        position = (min(max(value, float(grid[0])), float(grid[-1])) - float(grid[0])) / float(grid[1] - grid[0])
-        low = min(int(position), len(grid) - 2)
-        frac = position - low
-        raw = (1 - frac) * raw[low] + frac * raw[low + 1]  # the first axis interpolated away
-    return central_moments(raw)
+    first two of ``bias`` (a model's nuisances; :func:`_hermite` in each axis of the (K0, K1, T, 6)
+    table of :func:`_edge_moments`)."""
+    return central_moments(_hermite(_hermite(table, _EDGE_GRID, bias[0]), _EDGE_SHAPE_GRID, bias[1]))
 
 
 def render_residuals(shape, camera, rot: Tensor, trans: Tensor, masks: np.ndarray, crop: int | None = None,
