@@ -319,7 +319,8 @@ def edge_profile(x: Tensor) -> Tensor:
     ±1/2 exactly, so with the ramp itself the moments are piecewise linear in the bias with
     kinks at 0 and ±1 for all those pixels at once, and a fit started at 0 stayed there (6 of
     269 stored models ended within 1e-4 px of 0; experiments/discover/HISTORY.md *Thirty-seventh
-    session*). Averaged over where within its pixel the outline lies, the moments are smooth."""
+    session*). Averaged over where within its pixel the outline lies, the moments are smooth
+    (:func:`_edge_moments` anchors them to the mask's own at a bias of 0)."""
     return torch.where(x < 0, 0.5 * (x + 1).clamp(min=0) ** 2, 1 - 0.5 * (1 - x).clamp(min=0) ** 2)
 
 
@@ -331,9 +332,12 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
     :func:`edge_profile` of ``d - b``, ``d`` its signed distance to the outline (Euclidean; positive
     inside, ±1/2 at the pixels beside it), ``phi`` the angle of the outline normal to the major
     axis and ``e`` the elongation of the (T, 2, 2) covariances ``axes`` (:func:`normal_axis_angle`;
-    discover passes its fitted silhouettes', None takes the masks' own), so ``b = 0`` gives about
-    the mask back (the pixels beside its outline 1/8 nearer one half), ``b > 0`` erodes and ``b <
-    0`` dilates.
+    discover passes its fitted silhouettes', None takes the masks' own); ``b > 0`` erodes and ``b
+    < 0`` dilates. Each frame's moments are then moved by the mask's own less those at ``b = 0``,
+    so that ``b = 0`` gives the mask back exactly: the profile's averaging over the outline's
+    place in its pixel smooths the moments' change with ``b``, and must not move them where there
+    is none (unanchored, it moved the pixels beside the outline 1/8 towards one half and the
+    balls' baselines fitted worse by 8-11 in BIC; HISTORY.md *Thirty-seventh session*).
 
     Returns:
         (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
@@ -357,6 +361,8 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
         for k in range(len(grid)):  # one b0 at a time: (K1, h, w) coverage
             cover = edge_profile(signed - bias[k])
             out[k, :, t] = torch.einsum("jhw,mhw->jm", cover, weights)
+        anchor = torch.as_tensor(crop, dtype=torch.float64) - edge_profile(signed)  # the mask less b = 0's coverage
+        out[:, :, t] += torch.einsum("hw,mhw->m", anchor, weights)
     return out
 
 
