@@ -288,9 +288,9 @@ def test_edge_bias_moments_are_smooth_in_the_bias():
     the fits' Jacobian takes (2e-4 px) and the backward one agree within 1 % on a tilted bar and a
     disc, on the table's nodes (0, 0.1, -1) and between them. With the unit ramp they differed
     at 0 and -1 (the bar's area slope by 2 % and 50 %): every pixel beside a mask's outline is
-    1/2 px from it, so all their kinks fell there together. The interpolated table matches the moments computed at
-    the bias itself, and a disc of radius 30 px loses area at 0.95-1 times its perimeter per pixel
-    of bias (the ramp's 0.89)."""
+    1/2 px from it, so all their kinks fell there together. The interpolated table matches the
+    moments computed at the bias itself, and a disc of radius 30 px loses area at 0.95-1 times
+    its perimeter per pixel of bias (the ramp's 0.89)."""
     from torchfit.discover_video import _edge_moments, _moments_at
     from torchfit.losses import central_moments
 

@@ -312,8 +312,8 @@ def normal_axis_angle(signed: Tensor, cov: Tensor) -> tuple[Tensor, float]:
 def edge_profile(x: Tensor) -> Tensor:
     """A pixel's coverage (any shape, in [0, 1]) at signed distance ``x`` pixels inside a moved
     outline: the unit ramp ``clip(x + 1/2, 0, 1)`` averaged over a unit box of outline positions,
-    ``(x + 1)^2 / 2`` on [-1, 0] and ``1 - (1 - x)^2 / 2`` on [0, 1]; odd about 1/2, continuous
-    with its slope.
+    ``(x + 1)^2 / 2`` on [-1, 0] and ``1 - (1 - x)^2 / 2`` on [0, 1] (``f(-x) = 1 - f(x)``),
+    continuous with its slope.
 
     A mask's outline is known only to the pixel: every pixel beside it is at signed distance
     ±1/2 exactly, so with the ramp itself the moments are piecewise linear in the bias with
@@ -337,7 +337,7 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
     so that ``b = 0`` gives the mask back exactly: the profile's averaging over the outline's
     place in its pixel smooths the moments' change with ``b``, and must not move them where there
     is none (unanchored, it moved the pixels beside the outline 1/8 towards one half and the
-    balls' baselines fitted worse by 8-11 in BIC; HISTORY.md *Thirty-seventh session*).
+    balls' baselines fitted worse by 4-12 in BIC; HISTORY.md *Thirty-seventh session*).
 
     Returns:
         (K0, K1, T, 6) ``(m00, m10, m01, m20, m11, m02)`` about the image origin for ``b0`` in
@@ -369,9 +369,9 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
 def _hermite(table: Tensor, grid: Tensor, value: float) -> Tensor:
     """``table`` (K, ...) tabulated on the uniform (K,) ``grid`` at ``value`` (clamped to the grid),
     the first axis interpolated away: a cubic Hermite spline with centred-difference slopes
-    (one-sided at the ends; Catmull-Rom), continuous with its first derivative, so a forward
-    difference of it is its derivative (a linear interpolation's slope jumps at every node, and
-    a fit started on a node stayed there). Returns (...)."""
+    (one-sided at the ends; Catmull-Rom), continuous with its first derivative, so that the
+    fits' forward difference is its derivative at the nodes too (a linear interpolation's slope
+    jumps at each node). Returns (...)."""
     spacing = float(grid[1] - grid[0])
     position = (min(max(value, float(grid[0])), float(grid[-1])) - float(grid[0])) / spacing
     low = min(int(position), len(grid) - 2)
