@@ -352,7 +352,8 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
         y0, x0 = max(rows[0] - margin, 0), max(cols[0] - margin, 0)
         crop = mask[y0:rows[-1] + margin + 1, x0:cols[-1] + margin + 1]
         signed = torch.as_tensor(signed_distance(crop), dtype=torch.float64)
-        cov = mask_moments(torch.as_tensor(crop, dtype=torch.float64)[None])[2][0] if axes is None else axes[t]
+        inside = torch.as_tensor(crop, dtype=torch.float64)
+        cov = mask_moments(inside[None])[2][0] if axes is None else axes[t]
         cos2, elongation = normal_axis_angle(signed, cov)
         bias = grid[:, None, None, None] + shape_grid[None, :, None, None] * (elongation * cos2)
         v, u = torch.meshgrid(torch.arange(crop.shape[0], dtype=torch.float64) + y0,
@@ -361,7 +362,7 @@ def _edge_moments(masks: np.ndarray, axes: Tensor | None = None, grid: Tensor = 
         for k in range(len(grid)):  # one b0 at a time: (K1, h, w) coverage
             cover = edge_profile(signed - bias[k])
             out[k, :, t] = torch.einsum("jhw,mhw->jm", cover, weights)
-        anchor = torch.as_tensor(crop, dtype=torch.float64) - edge_profile(signed)  # the mask less b = 0's coverage
+        anchor = inside - edge_profile(signed)  # the mask less b = 0's coverage
         out[:, :, t] += torch.einsum("hw,mhw->m", anchor, weights)
     return out
 
@@ -378,7 +379,8 @@ def _hermite(table: Tensor, grid: Tensor, value: float) -> Tensor:
     t = position - low
 
     def slope(k: int) -> Tensor:  # per node of the grid, per unit of position
-        return 0.5 * (table[min(k + 1, len(grid) - 1)] - table[max(k - 1, 0)]) * (2.0 if k in (0, len(grid) - 1) else 1.0)
+        above, below = min(k + 1, len(grid) - 1), max(k - 1, 0)
+        return (table[above] - table[below]) / (above - below)
 
     return ((2 * t**3 - 3 * t**2 + 1) * table[low] + (t**3 - 2 * t**2 + t) * slope(low)
             + (3 * t**2 - 2 * t**3) * table[low + 1] + (t**3 - t**2) * slope(low + 1))
