@@ -321,6 +321,30 @@ def test_edge_bias_moments_are_smooth_in_the_bias():
     assert -float(slope) / (2 * np.pi * 30.0) == pytest.approx(0.975, abs=0.025)
 
 
+def test_cost_is_continuous_in_the_edge_shape_term_on_a_ball():
+    """A ball's rasterised outline is round to the pixel, so its long axis is undefined where the
+    edge term ``b1`` is 0 and turns a quarter turn as ``b1`` crosses it. Measured along it, the
+    cost jumped there (605.05, 604.99 and 604.995 at b1 = -1e-6, 0 and 1e-6 on this problem);
+    along the baseline's own axes, fixed in ``_set_noise``, it moves by the slope alone."""
+    import torchfit.discover_video as dv
+
+    ball = load_shape(primitive="sphere", dims={"radius": 0.04}, density=80.0)
+    problem, truth = _synthetic("magnus", {"lift_coefficient": 8.0}, shape=ball)
+    video = dv.VideoProblem(problem)
+    base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    video._set_noise(base)
+    fitted = video._fitted_moments(base.cands, [], None)
+
+    def cost(b1):
+        nuisances = list(base.nuisances)
+        nuisances[video.nuisance_names.index("edge_shape")] = b1
+        with torch.no_grad():
+            return video._cost(video._vector_of(fitted, tuple(nuisances), video.problem.used)[0])
+
+    low, mid, high = cost(-1e-6), cost(0.0), cost(1e-6)
+    assert abs(high - low) < 1e-4 and abs(mid - 0.5 * (low + high)) < 1e-6, (low, mid, high)
+
+
 @pytest.mark.parametrize("angle", [0.0, 35.0, 45.0, 90.0])
 def test_edge_bias_second_term_moves_the_ends_against_the_sides(angle):
     """b1 moves the outline by b1 e cos(2 phi), e the silhouette's elongation: inward at the ends
@@ -631,8 +655,14 @@ def test_hubers_criterion_keeps_a_few_bad_frames_from_pulling_the_fit():
     """``robust=2``: three train frames in a row whose observed centroid is 3 px off (a
     segmentation's bad stretch, whitened residuals 6-15 noise units) move the fitted clock about an
     eighth as far as they move the squares' fit (at 1 px, residuals of 3-4 units, only a fifth
-    less: Huber's loss bounds each residual's pull, it does not remove it); on clean masks (every whitened residual within 2) the two fits agree; and a
-    fit's chi-squared is Huber's loss of the plain whitened residuals (plus the priors' squares)."""
+    less: Huber's loss bounds each residual's pull, it does not remove it); on clean masks (every
+    whitened residual within 2) the two fits agree to a tenth of that pull (their paths differ
+    where the screening's trial clocks leave residuals above 2, and a box's outline has a kink in
+    its pose where a face turns edge-on, its width ``a |cos t| + b |sin t|``: since the shape
+    channels' axes are fixed, the squares' fit ends in a shallow pocket that such a kink bounds,
+    its cost 0.05 above the robust fit's, its clock 3e-4 off; before, the two agreed within 1e-6);
+    and a fit's chi-squared is Huber's
+    loss of the plain whitened residuals (plus the priors' squares)."""
     from types import SimpleNamespace
 
     import torchfit.discover_video as dv
@@ -659,8 +689,8 @@ def test_hubers_criterion_keeps_a_few_bad_frames_from_pulling_the_fit():
     squares_video, _, squares = fitted(None, 3.0)
     robust_video, robust_fit, robust = fitted(2.0, 3.0)
     assert abs(clean - 1.04) < 0.005
-    assert clean_robust == pytest.approx(clean, abs=1e-6)
     assert abs(squares - clean) > 2e-3  # the bad frames do pull the squares' fit
+    assert abs(clean_robust - clean) < 0.1 * abs(squares - clean)
     assert abs(robust - clean) < 0.3 * abs(squares - clean)
     # the robust fit's chi-squared is Huber's loss of its plain whitened residuals
     used = robust_video.problem.used.cpu().numpy().astype(bool)

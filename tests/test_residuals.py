@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.residuals import huber_root, locate, noise_floor, residual_channels
+from torchfit.residuals import channel_values, huber_root, locate, noise_floor, residual_channels
 from torchfit.video import load_observation
 
 DATA = Path(__file__).resolve().parents[1] / "torchfit" / "recordings"
@@ -98,3 +98,44 @@ def test_huber_root_gradcheck_float64():
     edge = torch.tensor([2.0 - 1e-7, 2.0 + 1e-7], dtype=torch.float64, requires_grad=True)
     (grad,) = torch.autograd.grad(huber_root(edge, 2.0).sum(), edge)
     assert torch.allclose(grad, torch.ones(2, dtype=torch.float64), atol=1e-6)
+
+
+def _moments(area, centre, cov):
+    return (torch.tensor(area, dtype=torch.float64), torch.tensor(centre, dtype=torch.float64),
+            torch.tensor(cov, dtype=torch.float64))
+
+
+def test_channel_values_gradcheck_float64_with_a_given_axis():
+    """With the axes given, all five channels are smooth in both outlines' moments (finite
+    differences agree with autograd on a round and an elongated pair), and with the observed
+    outline's own long axis given they are those measured along it."""
+    observed = _moments([900.0, 1200.0], [[40.2, 31.0], [70.5, 44.1]],
+                        [[[72.0, 0.4], [0.4, 71.3]], [[160.0, 35.0], [35.0, 60.0]]])
+    fitted = _moments([905.0, 1180.0], [[40.0, 31.3], [70.9, 44.0]],
+                      [[[71.5, -0.3], [-0.3, 72.1]], [[150.0, 40.0], [40.0, 66.0]]])
+    axis = torch.tensor([[0.6, 0.8], [0.96, 0.28]], dtype=torch.float64)
+
+    def flat(area_o, centre_o, cov_o, area_f, centre_f, cov_f):
+        cov_o, cov_f = 0.5 * (cov_o + cov_o.mT), 0.5 * (cov_f + cov_f.mT)
+        return torch.stack(list(channel_values((area_o, centre_o, cov_o), (area_f, centre_f, cov_f), axis).values()))
+
+    inputs = tuple(x.clone().requires_grad_() for x in observed + fitted)
+    assert torch.autograd.gradcheck(flat, inputs)
+    own = torch.linalg.eigh(observed[2] / observed[0][:, None, None])[1][..., :, -1]
+    for name, value in channel_values(observed, fitted).items():
+        torch.testing.assert_close(value, channel_values(observed, fitted, own)[name], rtol=0, atol=1e-12)
+
+
+def test_channel_values_with_a_fixed_axis_do_not_jump_on_a_round_outline():
+    """A round observed outline's long axis turns a quarter turn under a change of 1e-9 px^2 in
+    its moments, and the shape channel measured along it jumps with it; along a fixed axis the
+    channels move by about the change."""
+    fitted = _moments([900.0], [[40.0, 31.0]], [[[72.0, 0.0], [0.0, 70.0]]])
+    axis = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+
+    def shape(delta, given):
+        observed = _moments([900.0], [[40.0, 31.0]], [[[71.0 + delta, 0.0], [0.0, 71.0 - delta]]])
+        return float(channel_values(observed, fitted, given)["shape"][0])
+
+    assert abs(shape(1e-9, None) - shape(-1e-9, None)) > 0.01  # the observed axis: x, then y
+    assert abs(shape(1e-9, axis) - shape(-1e-9, axis)) < 1e-10

@@ -640,6 +640,7 @@ class VideoProblem:
             train[held_idx] = False
             self.splits.append((train, used & ~train))
         self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
+        self.channel_axes: Tensor | None = None  # (T, 2) shape's and orientation's axes, likewise
         # the soft coverage's raw moments less the mask's: what the edge nuisance's moments of the
         # masks are shifted by when the observation is the coverage
         self.coverage_shift = None
@@ -731,7 +732,7 @@ class VideoProblem:
         observed = tuple(m.expand(len(fitted[0]), *m.shape) for m in _moments_at(self.edge_table, nuisances))
         used = self.problem.used
         return {k: torch.where(used, v, torch.full_like(v, float("nan")))
-                for k, v in channel_values(observed, self._spread(fitted, nuisances)).items()}
+                for k, v in channel_values(observed, self._spread(fitted, nuisances), self.channel_axes).items()}
 
     @property
     def train(self) -> np.ndarray:
@@ -1348,7 +1349,10 @@ class VideoProblem:
 
         The table's axis and elongation per frame (the second term's, :func:`normal_axis_angle`)
         are those of ``model``'s silhouettes, fixed from here on: the object's shape as the
-        baseline sees it, which the segmentation noise does not move.
+        baseline sees it, which the segmentation noise does not move. So are the long axes along
+        which every model's ``shape`` and ``orientation`` channels are measured
+        (:func:`torchfit.residuals.channel_values`): the observed outline's own turns with the
+        edge bias, a quarter turn at once where it is near round.
 
         A frame is an outlier when, in any channel, it departs from the straight line through
         its two neighbours by more than ``threshold`` jitter standard deviations (a failed
@@ -1359,6 +1363,7 @@ class VideoProblem:
             fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.nuisances))
             masks = self.problem.masks.cpu().numpy() > 0.5
             self.edge_table = _edge_moments(masks, fitted[2][0].cpu()).to(self.problem.masks.device)
+            self.channel_axes = torch.linalg.eigh(fitted[2][0])[1][..., :, -1]
             if self.coverage_shift is not None:
                 self.edge_table = self.edge_table + self.coverage_shift
             channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.nuisances).items()}

@@ -39,9 +39,10 @@ class Residuals:
             as log(observed size / fitted size) with size = sqrt(area), ``shape`` as the
             normalised second moments' difference along the observed outline's long axis
             (elongation; positive: the observed outline is longer and thinner), ``orientation``
-            as the fitted outline's cross moment in the observed outline's principal axes over
-            the observed trace (≈ the in-plane turn in radians times (λ₁ − λ₂)/(λ₁ + λ₂):
-            zero for a round outline, whose turn is unobservable).
+            as the observed less the fitted cross moment in the observed outline's principal
+            axes over the observed trace (≈ the in-plane turn in radians times (λ₁ − λ₂)/(λ₁ +
+            λ₂): zero for a round outline, whose turn is unobservable). discover measures both
+            along its baseline's outline's axes instead (:func:`channel_values`).
         noise: channel name -> noise floor (standard deviation, same unit as the channel).
     """
 
@@ -81,12 +82,18 @@ def residual_channels(observed: np.ndarray | torch.Tensor, fitted: np.ndarray | 
     return Residuals(np.asarray(times, float), used, values, noise)
 
 
-def channel_values(observed: tuple, fitted: tuple) -> dict:
+def channel_values(observed: tuple, fitted: tuple, axis: torch.Tensor | None = None) -> dict:
     """The five channels from silhouette moments (differentiable in ``fitted``).
 
     Args:
         observed, fitted: ``(area (..., ), centroid (..., 2), covariance (..., 2, 2))`` in image
             pixels, as :func:`torchfit.losses.mask_moments` returns them; any batch shape.
+        axis: (..., 2) unit vectors along which ``shape`` and ``orientation`` are measured; None
+            takes the observed outline's long axis. Where ``observed`` moves with the fitted
+            parameters (discover's edge nuisance), pass an axis that does not: a near-round
+            outline's long axis turns by a quarter turn under the slightest change, and the
+            channels then jump (on a synthetic ball, a cost of 605 by 0.06 where the edge
+            term's ``b1`` crossed 0; experiments/discover/HISTORY.md *Thirty-eighth session*).
 
     Returns:
         channel name -> (...) residual, observed minus fitted (see :class:`Residuals`).
@@ -96,23 +103,22 @@ def channel_values(observed: tuple, fitted: tuple) -> dict:
     safe_o, safe_f = area_o.clamp(min=1.0), area_f.clamp(min=1.0)
     # second moments per unit area: shape without size
     shape_o, shape_f = cov_o / safe_o[..., None, None], cov_f / safe_f[..., None, None]
-    _, vectors = torch.linalg.eigh(shape_o)
-    long_axis = vectors[..., :, -1]  # (..., 2) the observed outline's long axis
-
-    def elongation(moments):
-        return torch.einsum("...i,...ij,...j->...", long_axis, moments, long_axis)
-
+    if axis is None:
+        axis = torch.linalg.eigh(shape_o)[1][..., :, -1]  # (..., 2) the observed outline's long axis
     # the short axis a quarter turn from the long one: the cross moment is then the same for
     # either sign of the long axis (eigh's sign is arbitrary)
-    short_axis = torch.stack((-long_axis[..., 1], long_axis[..., 0]), -1)
-    cross = torch.einsum("...i,...ij,...j->...", long_axis, shape_f, short_axis)
+    short_axis = torch.stack((-axis[..., 1], axis[..., 0]), -1)
+
+    def along(moments, other):
+        return torch.einsum("...i,...ij,...j->...", axis, moments, other)
 
     return {
         "centroid_x": centre_o[..., 0] - centre_f[..., 0],
         "centroid_y": centre_o[..., 1] - centre_f[..., 1],
         "scale": 0.5 * torch.log(safe_o / safe_f),
-        "shape": elongation(shape_o) / elongation(shape_f).clamp(min=1e-9) - 1.0,
-        "orientation": -cross / torch.diagonal(shape_o, dim1=-2, dim2=-1).sum(-1).clamp(min=1e-9),
+        "shape": along(shape_o, axis) / along(shape_f, axis).clamp(min=1e-9) - 1.0,
+        "orientation": (along(shape_o, short_axis) - along(shape_f, short_axis))
+        / torch.diagonal(shape_o, dim1=-2, dim2=-1).sum(-1).clamp(min=1e-9),
     }
 
 
