@@ -661,8 +661,8 @@ def test_hubers_criterion_keeps_a_few_bad_frames_from_pulling_the_fit():
     its pose where a face turns edge-on, its width ``a |cos t| + b |sin t|``: since the shape
     channels' axes are fixed, the squares' fit ends in a shallow pocket that such a kink bounds,
     its cost 0.05 above the robust fit's, its clock 3e-4 off; before, the two agreed within 1e-6);
-    and a fit's chi-squared is Huber's
-    loss of the plain whitened residuals (plus the priors' squares)."""
+    and a fit's chi-squared is Huber's loss of the plain whitened residuals (plus the priors'
+    squares)."""
     from types import SimpleNamespace
 
     import torchfit.discover_video as dv
