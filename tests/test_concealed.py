@@ -312,6 +312,31 @@ def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the
     assert not conc.below_limit(conc.row("lens_x", lens))  # two numbers: never called below
 
 
+def test_a_named_lens_is_compared_by_its_shift_where_the_object_went():
+    """A named lens is compared with the engine's by the shift each gives the point seen farthest
+    out (the run's ``lens_shift``, at its radius and focal length), beside k1 and k2; the shift is
+    no drag or lift, so the coefficients' count leaves it out, and coefficients.py lists it."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    coefficients = _load("coefficients", CONCEALED.parent / "coefficients.py")
+    truth = {"lens_distortion": {"k1": -0.2, "k2": 0.04}}
+    content = _content(["lens_distortion"], truth)
+    content["models"][-1]["params"] = {"lens_distortion": {"k1": {"value": -0.05, "std": 0.03},
+                                                           "k2": {"value": -0.5, "std": 0.1}}}
+    # the engine's lens at 0.5 normalised units (300 px at 600 px): rho_u solves
+    # rho (1 - 0.2 rho^2 + 0.04 rho^4) = 0.5, 0.527762..., a shift of 600 (0.5 - rho_u) = -16.66 px
+    content["models"][-1]["lens_shift"] = {"radius_px": 300.0, "focal_px": 600.0, "value_px": -15.0,
+                                           "std_px": 1.0, "correlation": -0.97}
+    r = conc.row("lens_box", content)
+    shift = r["params"]["lens_distortion"]["shift_px"]
+    assert shift["fitted"] == -15.0 and shift["std"] == 1.0
+    assert shift["true"] == pytest.approx(-16.6572, abs=1e-3)
+    assert conc.score([r])["coefficients_within_25pc"] == [0, 0]
+    assert "shift_px -15 ± 1 (true -16.7)" in conc.table([r])
+    rows = coefficients.coefficient_rows(content)
+    assert rows[-1] == ("lens_distortion", "shift_px", pytest.approx(-16.6572, abs=1e-3), -15.0, 1.0)
+
+
 def test_a_balls_lift_is_compared_across_the_direction_the_video_sees_least():
     """A ball's named lift is compared with the engine's as the video measures it: the size of
     ``C_L ω``'s part across the direction the run's covariance knows least (both vectors across

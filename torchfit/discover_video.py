@@ -641,6 +641,9 @@ class VideoProblem:
             self.splits.append((train, used & ~train))
         self.edge_table: Tensor | None = None  # the edge nuisance's moments, set by the baseline fit
         self.channel_axes: Tensor | None = None  # (T, 2) shape's and orientation's axes, likewise
+        # (radius_px, focal_px) of the observed centroid farthest from the principal point, likewise
+        # (:meth:`_reach`): where a lens's shift is reported (:func:`lens_shift`)
+        self.lens_reach: tuple[float, float] | None = None
         # the soft coverage's raw moments less the mask's: what the edge nuisance's moments of the
         # masks are shifted by when the observation is the coverage
         self.coverage_shift = None
@@ -1112,17 +1115,20 @@ class VideoProblem:
                       "velocity": model.cands.com_velocity[0].detach().cpu().double().tolist(),
                       "unit": "rad/s (C_L times the spin, world frame)"}
 
-    def _uncertainty(self, model: _Model, resid: Tensor, jac: Tensor) -> tuple[dict, tuple[float, ...], dict, dict | None]:
+    def _uncertainty(self, model: _Model, resid: Tensor,
+                     jac: Tensor) -> tuple[dict, tuple[float, ...], dict, dict | None, dict | None]:
         """Standard errors of the effect parameters (``{effect: {parameter: (std, alone_std)}}``,
         :func:`torchfit.discover.alone_std` the second), of the nuisances (the edge bias's two
         terms in pixels, and a fitted exposure's fraction),
         each effect's Wald statistic against its null values
         (:func:`torchfit.discover.wald_statistic`; a ball's lift, whose spin only the lift
-        reveals, as its lift vector's), and that lift vector (:meth:`_ball_lift`, None elsewhere):
-        Gauss-Newton at the optimum, inflated by the reduced chi-squared when it exceeds 1."""
+        reveals, as its lift vector's), that lift vector (:meth:`_ball_lift`, None elsewhere) and a
+        lens's shift where the object went farthest from the image centre (:func:`lens_shift` at
+        :attr:`lens_reach`, None without a lens): Gauss-Newton at the optimum, inflated by the
+        reduced chi-squared when it exceeds 1."""
         cov = self._covariance(model, resid, jac)
         std = cov.diagonal().clamp(min=0).sqrt()[14:]
-        out, wald, offset, ball_lift = {}, {}, 0, None
+        out, wald, offset, ball_lift, lens = {}, {}, 0, None, None
         for name, params in model.values.items():
             start, value, null, scales = offset, [], [], []
             for pname, current in params.items():
@@ -1137,13 +1143,17 @@ class VideoProblem:
             wald[name] = wald_statistic(torch.cat(value), torch.cat(null), block)
             if name == "magnus" and self.hidden and _spin_seen_by_lift_alone(model.values):
                 wald[name], ball_lift = self._ball_lift(model, cov, 14 + start)
+            if name == "lens_distortion" and self.lens_reach is not None:
+                units = torch.tensor([scale for _, _, scale in scales], dtype=torch.float64)
+                lens = lens_shift(float(model.values[name]["k1"]), float(model.values[name]["k2"]),
+                                  (block * torch.outer(units, units)).tolist(), *self.lens_reach)
             alone, at = alone_std(block), start
             for pname, count, scale in scales:
                 part, solo = std[at:at + count].cpu() * scale, alone[at - start:at - start + count] * scale
                 out.setdefault(name, {})[pname] = tuple(x.tolist() if count > 1 else float(x[0]) for x in (part, solo))
                 at += count
         nuisances = tuple(float(std[offset + k]) * NUISANCE_SCALES[name] for k, name in enumerate(self.nuisance_names))
-        return out, nuisances, wald, ball_lift
+        return out, nuisances, wald, ball_lift, lens
 
     def _initial(self, model: _Model) -> dict:
         """The model's flight at t = 0 (the first fitted frame) as DESIGN.md's ``result.json``
@@ -1206,7 +1216,7 @@ class VideoProblem:
                                            {"value": self.nuisance(model.nuisances, name),
                                             "std": std[1][self.nuisance_names.index(name)]})
                                     for name in ("exposure", "point_spread")},
-                                 "held_channels": held_channels, "ball_lift": std[3],
+                                 "held_channels": held_channels, "ball_lift": std[3], "lens_shift": std[4],
                                  "heldout_split_rms": split_rms, "heldout_split_centroid_px": split_centroid,
                                  "heldout_centroid_px": float(np.mean(split_centroid)),
                                  "fit_centroid_px": float(np.sqrt(np.nanmean(centroid[used] ** 2)))},
@@ -1343,6 +1353,17 @@ class VideoProblem:
                                               for f in one.fields())), {}, self.start_nuisances()))
         return starts
 
+    def _reach(self, centroids: np.ndarray) -> tuple[float, float]:
+        """``(radius_px, focal_px)`` of the (N, 2) observed centroid (px) farthest from the
+        principal point in normalised units: its distance in pixels, and pixels per unit of
+        normalised radius along its direction (:func:`lens_shift`)."""
+        camera = self.problem.camera
+        offset = centroids - np.array([camera.cx, camera.cy])
+        normalised = offset / np.array([camera.fx, camera.fy])
+        far = int(np.argmax(np.hypot(*normalised.T)))
+        radius, rho = float(np.hypot(*offset[far])), float(np.hypot(*normalised[far]))
+        return radius, (radius / rho if rho > 0 else float(camera.fx))
+
     def _set_noise(self, model: _Model, threshold: float = 6.0) -> None:
         """The edge nuisance's table, then noise floors from the baseline's residuals, after
         leaving out outlier frames.
@@ -1367,8 +1388,10 @@ class VideoProblem:
             if self.coverage_shift is not None:
                 self.edge_table = self.edge_table + self.coverage_shift
             channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.nuisances).items()}
+            centroids = _moments_at(self.edge_table, model.nuisances)[1].cpu().numpy()
         used = self.problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
+        self.lens_reach = self._reach(centroids[idx])
         outliers = np.zeros_like(used)
         for name in CHANNELS:
             values = channels[name][idx]
@@ -1586,7 +1609,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                     "fit_centroid_px": f.payload["fit_centroid_px"], "bic": _criterion(f, 1.0)[1],
                     "edge_px": f.payload["edge_px"], "frame_chi2": f.parts.tolist(),
                     "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params,
-                    "ball_lift": f.payload.get("ball_lift"), "initial": video._initial(f.payload["model"])}
+                    "ball_lift": f.payload.get("ball_lift"), "lens_shift": f.payload.get("lens_shift"),
+                    "initial": video._initial(f.payload["model"])}
                    for f in chain],
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
@@ -1775,6 +1799,19 @@ def plain_unit_lines(verdict: Sequence[str], params: dict, stated_fps: float) ->
     return lines
 
 
+def lens_shift_lines(verdict: Sequence[str], shift: dict | None) -> list[str]:
+    """A named lens in pixels: the shift it gives the point seen where the object went farthest
+    from the image centre (``shift``, the final model's :func:`lens_shift` entry), which the clip
+    measures, where ``k1`` and ``k2`` apart trade against each other."""
+    if "lens_distortion" not in verdict or shift is None or not math.isfinite(shift["value_px"]):
+        return []
+    way = "toward" if shift["value_px"] < 0 else "away from"
+    return [f"  lens in pixels: the point seen {shift['radius_px']:.0f} px from the image centre (the farthest "
+            f"the object went) is moved {abs(shift['value_px']):.2f} ± {shift['std_px']:.2f} px {way} it by the lens; "
+            f"k1 and k2 alone trade against each other (correlation {shift['correlation']:+.2f}), so read the "
+            f"lens by this shift, not by either"]
+
+
 def across_velocity(vector: Sequence[float], velocity: Sequence[float]) -> np.ndarray:
     """(3,) the part of a (3,) vector across a (3,) velocity."""
     vector, direction = np.asarray(vector, dtype=float), np.asarray(velocity, dtype=float)
@@ -1793,6 +1830,51 @@ def lift_across(vector: Sequence[float], direction: Sequence[float],
         return size, 0.0
     grad = across / size  # d|P L| / dL with P the projection across the velocity
     return size, float(np.sqrt(max(grad @ np.asarray(covariance, dtype=float) @ grad, 0.0)))
+
+
+def lens_shift(k1: float, k2: float, covariance: Sequence[Sequence[float]], radius_px: float,
+               focal_px: float) -> dict:
+    """The radial shift (px) the lens effect's ``k1, k2`` (:class:`torchfit.effects.LensDistortion`)
+    give the point seen ``radius_px`` from the principal point, with its standard error.
+
+    A fitted ``k1`` and ``k2`` trade against each other (on the concealed lens recordings ``k1``
+    read 0.25-0.87 of the engine's), while the shift they make together where the object went is
+    what the frames measure. The point seen at normalised radius ``rho_d = radius_px / focal_px``
+    came from ``rho_u``, the root of ``rho_u (1 + k1 rho_u^2 + k2 rho_u^4) = rho_d`` (Newton from
+    ``rho_d``); the shift is ``focal_px (rho_d - rho_u)`` (negative: toward the centre, a barrel
+    lens), its gradient ``focal_px (rho_u^3, rho_u^5) / (1 + 3 k1 rho_u^2 + 5 k2 rho_u^4)``.
+
+    Args:
+        k1, k2: the fitted coefficients (dimensionless).
+        covariance: (2, 2) their covariance.
+        radius_px: pixels from the principal point of the point seen (the distorted image).
+        focal_px: pixels per unit of normalised radius along that direction.
+
+    Returns:
+        ``{"radius_px", "focal_px", "value_px", "std_px", "correlation"}`` (the first two as given;
+        ``correlation`` is ``k1``'s and ``k2``'s); ``value_px`` and ``std_px`` NaN where the lens
+        folds back (its radial map stops growing) before that radius.
+    """
+    cov = np.asarray(covariance, dtype=float)
+    rho_d = radius_px / focal_px
+    rho = rho_d
+    for _ in range(50):
+        slope = 1 + 3 * k1 * rho**2 + 5 * k2 * rho**4
+        if slope <= 0:
+            break
+        step = (rho * (1 + k1 * rho**2 + k2 * rho**4) - rho_d) / slope
+        rho -= step
+        if abs(step) < 1e-15 * max(rho_d, 1e-300):
+            break
+    slope = 1 + 3 * k1 * rho**2 + 5 * k2 * rho**4
+    scale = math.sqrt(max(cov[0, 0] * cov[1, 1], 0.0))
+    correlation = float(cov[0, 1] / scale) if scale > 0 else float("nan")
+    if slope <= 0 or not math.isfinite(rho):
+        return {"radius_px": float(radius_px), "focal_px": float(focal_px), "value_px": float("nan"),
+                "std_px": float("nan"), "correlation": correlation}
+    grad = focal_px * np.array([rho**3, rho**5]) / slope
+    return {"radius_px": float(radius_px), "focal_px": float(focal_px), "value_px": float(focal_px * (rho_d - rho)),
+            "std_px": math.sqrt(max(float(grad @ cov @ grad), 0.0)), "correlation": correlation}
 
 
 def least_seen(covariance: Sequence[Sequence[float]]) -> np.ndarray:
@@ -1861,6 +1943,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     times = video.problem.times.detach().cpu().numpy()
     lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
     lines += lift
+    lines += lens_shift_lines(selection.verdict, final.payload.get("lens_shift"))
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape),

@@ -67,6 +67,7 @@ from torchfit.discover_video import (
     angle_to_line,
     discover_video,
     least_seen,
+    lens_shift,
     lift_across,
 )
 from torchfit.camera import Camera
@@ -206,6 +207,13 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
         lift = ball_lift(content) if effect == "magnus" else None
         if lift is not None:  # a ball: its lift vector's part across the direction it is seen least
             params[effect] = {"lift_across": lift}
+        shift = last.get("lens_shift") if effect == "lens_distortion" and fitted else None
+        if shift is not None:  # the lens's shift where the object went farthest, against the engine's lens
+            true = content["truth_effects"][effect]
+            params[effect]["shift_px"] = {
+                "fitted": shift["value_px"], "std": shift["std_px"],
+                "true": lens_shift(true["k1"], true["k2"], [[0.0, 0.0], [0.0, 0.0]], shift["radius_px"],
+                                   shift["focal_px"])["value_px"]}
     # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
     limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
     # round one's strongest candidate, passing or not: how close a control came to a false alarm
