@@ -1806,10 +1806,10 @@ def lens_shift_lines(verdict: Sequence[str], shift: dict | None) -> list[str]:
     if "lens_distortion" not in verdict or shift is None or not math.isfinite(shift["value_px"]):
         return []
     way = "toward" if shift["value_px"] < 0 else "away from"
-    return [f"  lens in pixels: the point seen {shift['radius_px']:.0f} px from the image centre (the farthest "
-            f"the object went) is moved {abs(shift['value_px']):.2f} ± {shift['std_px']:.2f} px {way} it by the lens; "
-            f"k1 and k2 alone trade against each other (correlation {shift['correlation']:+.2f}), so read the "
-            f"lens by this shift, not by either"]
+    return [f"  lens in pixels: the point seen {shift['radius_px']:.0f} px from the image centre (the object's "
+            f"centre at its farthest) is moved {abs(shift['value_px']):.2f} ± {shift['std_px']:.2f} px {way} the "
+            f"centre by the lens; k1 and k2 alone trade against each other (correlation "
+            f"{shift['correlation']:+.2f}), so read the lens by this shift, not by either"]
 
 
 def across_velocity(vector: Sequence[float], velocity: Sequence[float]) -> np.ndarray:

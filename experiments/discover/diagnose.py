@@ -34,6 +34,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py regions SET NAME... [SETTING=V...]  # the coverage's centroid error by region (interior, ramp, outside), ~30 s each
     python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
     python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
+    python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -1289,6 +1290,45 @@ def regions(folder: Path, settings=None, samples: int = 4) -> dict:
     return out
 
 
+def gravity_known(folder: Path) -> dict:
+    """Would knowing gravity's direction let the video see a drag or a lift? discover as by default
+    (``concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5 --exposure-taps 0
+    --fit-exposure --robust 2 --backcast --search-final 12``) with gravity held at the engine's
+    (``truth.json``'s tilt and roll): every refit starts there and holds its two columns (an upper
+    bound: a level or a phone's sensor knows it to a fraction of a degree, not exactly). Its
+    discover.json goes to results/diagnose_gravity-known_<set>_<name>/; returns each round-one
+    candidate's ΔBIC, held-out gain, fitted value and detection limit, and the verdict."""
+    from concealed import run_one
+
+    truth = json.loads((folder / "truth.json").read_text())
+    angles = torch.tensor([[math.radians(truth["tilt_deg"]), math.radians(truth["roll_deg"])]], dtype=torch.float64)
+    frozen, starts = dv.VideoProblem._frozen, dv.VideoProblem.search_starts
+
+    def held(self, model):
+        out = frozen(self, model)
+        out[dv._state_columns(model.cands)["gravity_angles"]] = True
+        return out
+
+    def at_truth(self, result, count):
+        models = starts(self, result, count)
+        for model in models:
+            model.cands.gravity_angles = angles.to(model.cands.gravity_angles)
+        return models
+
+    out = HERE / "results" / f"diagnose_gravity-known_{folder.parent.name}_{folder.name}"
+    dv.VideoProblem._frozen, dv.VideoProblem.search_starts = held, at_truth
+    try:
+        content = run_one(folder, out, albedo_passes=1, exposure=True, exposure_fraction=0.5, exposure_taps=0,
+                          fit_exposure=True, robust=2.0, backcast=True, search_final=12)
+    finally:
+        dv.VideoProblem._frozen, dv.VideoProblem.search_starts = frozen, starts
+    rounds = {name: {"delta_bic": s[0]["delta_bic"], "heldout_gain": s[0]["heldout_gain"],
+                     "fitted": {p: v["value"] for p, v in s[0]["params"].get(name, {}).items()},
+                     "detectable_above": s[0].get("detectable_above")}
+              for name, s in content["effects"].items() if s}
+    return {"verdict": content["verdict"], "truth_effects": content.get("truth_effects"), "round_one": rounds}
+
+
 def lens_residual(folder: Path, settings=None) -> dict:
     """Is a lens left after undistortion? The soft coverage's centroids (the segmentation's own
     moments, each frame's coverage undistorted through the calibrated camera, truth.json's
@@ -1424,7 +1464,7 @@ def main(argv: list[str]) -> None:
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
                 "spread-stall": spread_stall, "baseline-starts": baseline_starts,
                 "shape-frames": shape_frames, "error-speed": error_speed, "regions": regions,
-                "lens-residual": lens_residual}
+                "lens-residual": lens_residual, "gravity-known": gravity_known}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
