@@ -259,6 +259,17 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     # params.backcast null, the default: on the exposure path the last and the first quarter are
     # held out, and the model's RMS is their mean
     assert content["backcast"] is True and len(base["heldout_split_rms"]) == 2
+    # where the baseline's predictions of the two held-out parts miss, in the report as well
+    parts = content["located_heldout"]
+    assert [p["part"] for p in parts] == ["end", "start"] and len(content["located_heldout_after"]) == 2
+    for part in parts:  # this small clip holds out fewer than the 5 frames a trend needs
+        assert part["count"] < 5 and part["channels"] == {}
+        assert part["summary"] == f"too few frames to tell ({part['count']}; 5 needed)"
+    assert parts[1]["frames"][0] == content["criterion_frames"][0]
+    assert parts[0]["frames"][1] == content["criterion_frames"][-1]
+    assert parts[0]["count"] == parts[1]["count"] == len(content["heldout_frames"]) // 2
+    line = next(x for x in content["report"] if x.startswith("Where its predictions miss"))
+    assert f"the last {parts[0]['count']} frames ({parts[0]['frames'][0]}-{parts[0]['frames'][1]})" in line
     assert base["heldout_rms"] == pytest.approx(np.mean(base["heldout_split_rms"]))
     assert base["heldout_centroid_px"] == pytest.approx(np.mean(base["heldout_split_centroid_px"]))
     assert any(line.startswith("Held out (params.backcast)") for line in content["report"])

@@ -6,7 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from torchfit.residuals import channel_values, huber_root, locate, noise_floor, residual_channels
+from torchfit.residuals import (
+    CHANNELS,
+    channel_values,
+    huber_root,
+    locate,
+    locate_prediction,
+    noise_floor,
+    residual_channels,
+)
 from torchfit.video import load_observation
 
 DATA = Path(__file__).resolve().parents[1] / "torchfit" / "recordings"
@@ -45,6 +53,32 @@ def test_scale_mismatch_is_located_and_pure_noise_is_not():
     assert locate(residual_channels(noisy, fitted, times))["flagged"] == []
     shrinking = discs(centres + rng.normal(0, 0.3, (T, 2)), radii * (1 - 0.15 * times / times[-1]))
     assert locate(residual_channels(shrinking, fitted, times))["flagged"] == ["scale"]
+
+
+@pytest.mark.parametrize("backward", [False, True])
+def test_a_predictions_miss_is_located_growing_away_from_the_fitted_frames(backward):
+    """A prediction that drifts left like t^2 away from the frames it was fitted on (3.4 px at the
+    far end; forward into the last 12 frames, or backward into the first 12) is flagged in
+    centroid_x alone, in words; noise alone is not, and the frames outside the part do not count."""
+    rng = np.random.default_rng(2)
+    T, n = 48, 12
+    times = np.arange(T) / 60
+    noise = {name: 0.1 for name in CHANNELS}
+    values = {name: rng.normal(0, 0.1, T) for name in CHANNELS}
+    held = np.zeros(T, bool)
+    held[slice(T - n, T) if not backward else slice(0, n)] = True
+    away = np.abs(times - (times[T - n] if not backward else times[n - 1]))  # 0 at the part's fitted side
+    values["centroid_x"] = values["centroid_x"] - np.where(held, 100 * away**2, 0.0)
+    values["scale"][~held] = 50.0  # outside the part: never read
+    found = locate_prediction(values, held, times, noise, backward=backward)
+    assert found["flagged"] == ["centroid_x"] and found["frames"] == ([T - n, T - 1] if not backward else [0, n - 1])
+    x = found["channels"]["centroid_x"]
+    assert x["growth"] == "growing like t^2" and x["largest"] > 2.0
+    assert found["summary"].startswith("centroid_x observed left of the prediction, growing like t^2 away from the "
+                                       "fitted frames, up to 3.")
+    assert "at noise level: centroid_y, scale, shape, orientation" in found["summary"]
+    quiet = locate_prediction({name: rng.normal(0, 0.1, T) for name in CHANNELS}, held, times, noise, backward)
+    assert quiet["flagged"] == [] and quiet["summary"].startswith("at noise level")
 
 
 @pytest.mark.parametrize("name", ["tshape", "box_fast"])

@@ -64,6 +64,7 @@ from .residuals import (
     channel_values,
     huber_root,
     locate,
+    locate_prediction,
     noise_floor,
     systematic_floor,
 )
@@ -1579,6 +1580,16 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
 
     before, after = chain[0], chain[-1]
     located, located_after = locate(as_residuals(before)), locate(as_residuals(after))
+
+    def predicted(fit_: ModelFit) -> list[dict]:  # each held-out part as its split's fit predicts it
+        out = []
+        for k, (channels, (_, held)) in enumerate(zip(fit_.payload["held_channels"], video.splits)):
+            part = locate_prediction(channels, held, times, video.noise, backward=k == 1)
+            out.append(part | {"part": "start" if k == 1 else "end", "frames": [int(span[i]) for i in part["frames"]],
+                               "count": int(held.sum())})
+        return out
+
+    located_heldout, located_heldout_after = predicted(before), predicted(after)
     unexplained = _unexplained(video, after, located_after, times, used)
     effects = {}
     for step in selection.steps:
@@ -1589,6 +1600,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "effects": effects,
         "located": located,
         "located_after": located_after,
+        "located_heldout": located_heldout,
+        "located_heldout_after": located_heldout_after,
         "unexplained": unexplained,
         "size_mismatch": size_mismatch(before.payload["edge_px"], after.payload["edge_px"]),
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
@@ -1642,7 +1655,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     content["report"] = report = _report_lines(selection, chain, located, video,
                                                content["iou_final"]["mean_fitted"] if withheld else None,
                                                None if withheld else unexplained, content["size_mismatch"],
-                                               content["iou_baseline"]["mean_fitted"])
+                                               content["iou_baseline"]["mean_fitted"], located_heldout)
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)
@@ -1915,17 +1928,34 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> 
             f"rad/s, is C_L w's size over that)"]
 
 
+def prediction_line(parts: Sequence[dict] | None) -> list[str]:
+    """Where the baseline's predictions of the held-out parts miss (each part's
+    :func:`torchfit.residuals.locate_prediction`, with its ``part``, ``count`` and recording
+    ``frames``), one line; none without parts."""
+    if not parts:
+        return []
+    said = []
+    for part in parts:
+        first, last = part["frames"]
+        where = (f"the last {part['count']} frames ({first}-{last}) predicted from the rest" if part["part"] == "end"
+                 else f"the first {part['count']} frames ({first}-{last}) predicted backward")
+        said.append(f"{where}: {part['summary']}")
+    return [f"Where its predictions miss (frames it did not see): {'; '.join(said)}."]
+
+
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
                   unexplained: dict | None = None, mismatch: dict | None = None,
-                  baseline_iou: float | None = None) -> list[str]:
+                  baseline_iou: float | None = None, predicted: Sequence[dict] | None = None) -> list[str]:
     """A report a person reads in a minute (``withheld_iou``: the final model's mean IoU when the
     verdict is withheld for it, ``baseline_iou`` the baseline's; ``unexplained``: what the final
     model leaves, :func:`_unexplained`;
-    ``mismatch``: the size mismatch the edge nuisance took, :func:`size_mismatch`).
+    ``mismatch``: the size mismatch the edge nuisance took, :func:`size_mismatch`; ``predicted``:
+    where the baseline's predictions of the held-out parts miss, :func:`prediction_line`).
     Every candidate that lowers the BIC by more than the threshold and is not named gets a line
     saying which test it failed."""
     base, final = chain[0], chain[-1]
     lines = [f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}."]
+    lines += prediction_line(predicted)
     lines += size_mismatch_lines(mismatch, selection.verdict)
     if withheld_iou is not None:
         lines.append(withheld_line(selection.verdict, withheld_iou, baseline_iou))

@@ -218,6 +218,79 @@ def channel_trend(times: np.ndarray, values: np.ndarray, sigma: float, threshold
             "flagged": bool(trend["significance"] > threshold and rms > 2 * sigma)}
 
 
+# the words for a channel's observed outline against the model's, by the sign of the trend
+_DIRECTIONS = {"centroid_x": {1: "right", -1: "left"}, "centroid_y": {1: "down", -1: "up"},
+               "scale": {1: "larger (nearer)", -1: "smaller (farther)"},
+               "shape": {1: "longer", -1: "shorter"},
+               "orientation": {1: "turned clockwise", -1: "turned counter-clockwise"}}
+
+
+# the same against a prediction: where the observed outline lies from the predicted one
+_FROM_PREDICTED = {"centroid_x": {1: "right of", -1: "left of"}, "centroid_y": {1: "below", -1: "above"},
+                   "scale": {1: "larger (nearer) than", -1: "smaller (farther) than"},
+                   "shape": {1: "longer than", -1: "shorter than"},
+                   "orientation": {1: "turned clockwise from", -1: "turned counter-clockwise from"}}
+
+
+def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: dict, backward: bool = False,
+                      threshold: float = 5.0) -> dict:
+    """Where a prediction of held-out frames misses, in numbers and in words: :func:`locate`'s rule
+    on the predicted frames, the time counted from the fitted frames outward.
+
+    A model fitted to all frames can take an effect's signature into its own freedoms (a drag into
+    the launch speed and gravity's tilt) and leave residuals at noise level; its prediction of a
+    part it did not see carries the mismatch instead, growing away from the frames it saw.
+
+    Args:
+        values: channel name -> (T,) residuals (observed minus predicted) of a fit that did not
+            see the ``held`` frames.
+        held: (T,) bool, the predicted frames (one contiguous part).
+        times: (T,) seconds.
+        noise: channel name -> noise floor.
+        backward: the part lies before the fitted frames (predicted backward): its time runs from
+            its last frame to its first.
+        threshold: a channel's trend must explain more than this many noise standard deviations,
+            and its RMS exceed twice the floor (:func:`channel_trend`), to be flagged.
+
+    Returns:
+        ``{"frames": [first, last], "channels": {name: {...}}, "flagged": [names], "summary": str}``;
+        per channel ``rms``, ``largest`` (the largest absolute residual), ``noise``, ``unit``,
+        ``significance``, ``trend``, ``growth`` (away from the fitted frames), ``flagged`` and,
+        when flagged, ``words``.
+    """
+    idx = np.flatnonzero(held)
+    if backward:
+        idx = idx[::-1]
+    t = np.abs(times[idx] - times[idx[0]]) if len(idx) else np.zeros(0)
+    report, flagged, words = {}, [], []
+    for name in CHANNELS:
+        sigma = noise[name]
+        part = values[name][idx]
+        finite = np.isfinite(part)
+        if not np.isfinite(sigma) or finite.sum() < 5:
+            continue
+        sigma = max(sigma, 1e-9)
+        trend = channel_trend(t[finite], part[finite], sigma, threshold)
+        largest = float(np.max(np.abs(part[finite])))
+        report[name] = {"rms": trend["rms"], "largest": largest, "noise": sigma, "unit": UNITS[name],
+                        "significance": trend["significance"], "trend": trend["trend"], "growth": trend["growth"],
+                        "flagged": trend["flagged"]}
+        if trend["flagged"]:
+            flagged.append(name)
+            direction = _FROM_PREDICTED[name].get(trend["sign"], "off")
+            growth = trend["growth"] + (" away from the fitted frames" if trend["trend"] else "")
+            report[name]["words"] = (f"{name} observed {direction} the prediction, {growth}, up to {largest:.3g} "
+                                     f"{UNITS[name]} (noise floor {sigma:.2g})")
+            words.append(report[name]["words"])
+    quiet = [name for name in report if name not in flagged]
+    if quiet:
+        words.append(f"at noise level: {', '.join(quiet)}")
+    if not report:
+        words.append(f"too few frames to tell ({len(idx)}; 5 needed)")
+    frames = [int(idx.min()), int(idx.max())] if len(idx) else []
+    return {"frames": frames, "channels": report, "flagged": flagged, "summary": "; ".join(words)}
+
+
 def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
     """Which channels and frames carry the mismatch, in numbers and in words.
 
@@ -246,10 +319,7 @@ def locate(residuals: Residuals, threshold: float = 5.0) -> dict:
                         "growth": trend["growth"], "from_frame": onset, "flagged": trend["flagged"]}
         if trend["flagged"]:
             flagged.append(name)
-            direction = {"centroid_x": {1: "right", -1: "left"}, "centroid_y": {1: "down", -1: "up"},
-                         "scale": {1: "larger (nearer)", -1: "smaller (farther)"},
-                         "shape": {1: "longer", -1: "shorter"},
-                         "orientation": {1: "turned clockwise", -1: "turned counter-clockwise"}}[name].get(trend["sign"], "")
+            direction = _DIRECTIONS[name].get(trend["sign"], "")
             start = f" from frame {onset} on" if onset is not None else ""
             report[name]["words"] = (f"{name}: observed {direction} than fitted{start}, {trend['growth']}; RMS "
                                      f"{trend['rms']:.3g} {UNITS[name]} vs noise {sigma:.2g} "
