@@ -205,6 +205,18 @@ def test_discover_reports_a_lens_by_its_shift_where_the_object_went():
     assert dv.lens_shift_lines(["time_scale"], lens) == [] and dv.lens_shift_lines(["lens_distortion"], None) == []
 
 
+def test_prediction_line_names_each_part_by_its_frames_and_skips_an_empty_one():
+    import torchfit.discover_video as dv
+
+    end = {"part": "end", "count": 11, "frames": [34, 44], "summary": "at noise level: scale"}
+    start = {"part": "start", "count": 11, "frames": [0, 10], "summary": "centroid_y observed above the prediction"}
+    assert dv.prediction_line([end, start]) == [
+        "Where its predictions miss (frames it did not see): the last 11 frames (34-44) predicted from the rest: "
+        "at noise level: scale; the first 11 frames (0-10) predicted backward: centroid_y observed above the "
+        "prediction."]
+    assert dv.prediction_line([{**end, "frames": []}]) == [] and dv.prediction_line(None) == []
+
+
 @pytest.mark.parametrize("effect, value, wide", [
     ("time_scale", {"time_scale": 1.04}, False),
     ("lens_distortion", {"k1": -0.25, "k2": 0.0}, True),  # a wide lens, the object off-centre

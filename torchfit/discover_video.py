@@ -1850,9 +1850,10 @@ def lens_shift(k1: float, k2: float, covariance: Sequence[Sequence[float]], radi
     """The radial shift (px) the lens effect's ``k1, k2`` (:class:`torchfit.effects.LensDistortion`)
     give the point seen ``radius_px`` from the principal point, with its standard error.
 
-    A fitted ``k1`` and ``k2`` trade against each other (on the concealed lens recordings ``k1``
-    read 0.25-0.87 of the engine's), while the shift they make together where the object went is
-    what the frames measure. The point seen at normalised radius ``rho_d = radius_px / focal_px``
+    A fitted ``k1`` and ``k2`` trade against each other (on the 16 concealed lens recordings ``k1``
+    read 0.25-1.80 of the engine's, the shift 0.77-1.22: experiments/discover/HISTORY.md,
+    thirty-ninth session), while the shift they make together where the object went is what the
+    frames measure. The point seen at normalised radius ``rho_d = radius_px / focal_px``
     came from ``rho_u``, the root of ``rho_u (1 + k1 rho_u^2 + k2 rho_u^4) = rho_d`` (Newton from
     ``rho_d``); the shift is ``focal_px (rho_d - rho_u)`` (negative: toward the centre, a barrel
     lens), its gradient ``focal_px (rho_u^3, rho_u^5) / (1 + 3 k1 rho_u^2 + 5 k2 rho_u^4)``.
@@ -1931,16 +1932,16 @@ def ball_lift_lines(verdict: Sequence[str], params: dict, lift: dict | None) -> 
 def prediction_line(parts: Sequence[dict] | None) -> list[str]:
     """Where the baseline's predictions of the held-out parts miss (each part's
     :func:`torchfit.residuals.locate_prediction`, with its ``part``, ``count`` and recording
-    ``frames``), one line; none without parts."""
-    if not parts:
-        return []
+    ``frames``), one line; none without a part that has frames."""
     said = []
-    for part in parts:
+    for part in parts or ():
+        if not part["frames"]:  # every frame of the part left out as a segmentation failure
+            continue
         first, last = part["frames"]
         where = (f"the last {part['count']} frames ({first}-{last}) predicted from the rest" if part["part"] == "end"
                  else f"the first {part['count']} frames ({first}-{last}) predicted backward")
         said.append(f"{where}: {part['summary']}")
-    return [f"Where its predictions miss (frames it did not see): {'; '.join(said)}."]
+    return [f"Where its predictions miss (frames it did not see): {'; '.join(said)}."] if said else []
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
