@@ -211,7 +211,9 @@ def test_prediction_line_names_each_part_by_its_frames_and_skips_an_empty_one():
     end = {"part": "end", "count": 11, "frames": [34, 44], "summary": "at noise level: scale"}
     start = {"part": "start", "count": 11, "frames": [0, 10], "summary": "centroid_y observed above the prediction"}
     assert dv.prediction_line([end, start]) == [
-        "Where its predictions miss (frames it did not see): the last 11 frames (34-44) predicted from the rest: "
+        "Where its predictions miss (frames it did not see; a prediction carries its fitted parameters' spread "
+        "besides the noise floor, so a clip that hides nothing misses too): the last 11 frames (34-44) predicted "
+        "from the rest: "
         "at noise level: scale; the first 11 frames (0-10) predicted backward: centroid_y observed above the "
         "prediction."]
     assert dv.prediction_line([{**end, "frames": []}]) == [] and dv.prediction_line(None) == []

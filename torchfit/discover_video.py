@@ -1941,7 +1941,9 @@ def prediction_line(parts: Sequence[dict] | None) -> list[str]:
         where = (f"the last {part['count']} frames ({first}-{last}) predicted from the rest" if part["part"] == "end"
                  else f"the first {part['count']} frames ({first}-{last}) predicted backward")
         said.append(f"{where}: {part['summary']}")
-    return [f"Where its predictions miss (frames it did not see): {'; '.join(said)}."] if said else []
+    return [f"Where its predictions miss (frames it did not see; a prediction carries its fitted parameters' "
+            f"spread besides the noise floor, so a clip that hides nothing misses too): {'; '.join(said)}."] \
+        if said else []
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
