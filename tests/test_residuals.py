@@ -79,6 +79,10 @@ def test_a_predictions_miss_is_located_growing_away_from_the_fitted_frames(backw
     assert "at noise level: centroid_y, scale, shape, orientation" in found["summary"]
     quiet = locate_prediction({name: rng.normal(0, 0.1, T) for name in CHANNELS}, held, times, noise, backward)
     assert quiet["flagged"] == [] and quiet["summary"].startswith("at noise level")
+    # the same drift within what the prediction's own spread allows there is not a miss
+    spread = {name: np.where(held, 2 * (0.1 + 100 * away**2), np.nan) for name in CHANNELS}
+    allowed = locate_prediction(values, held, times, noise, backward=backward, spread=spread)
+    assert allowed["flagged"] == [] and allowed["channels"]["centroid_x"]["spread_largest"] > 6.0
 
 
 @pytest.mark.parametrize("name", ["tshape", "box_fast"])

@@ -1080,6 +1080,39 @@ class VideoProblem:
         reduced = float(r.square().sum()) / max(n - p, 1)
         return torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
 
+    def prediction_spread(self, held_model: _Model, resid: Tensor, jac: Tensor, held: np.ndarray) -> dict:
+        """Channel name -> (T,) standard deviation of ``held_model``'s prediction of the ``held``
+        frames from its fitted parameters' spread alone (channel units; NaN elsewhere): ``held_model``
+        fitted on the train frames with (N,) residual ``resid`` and (N, P) Jacobian ``jac`` there,
+        whose covariance (:meth:`_covariance`) is carried to each held frame's channels by their
+        Jacobian there, ``diag(J C Jᵀ)``. The held frames' Jacobian is taken on squares (Huber's
+        root would shrink it where the prediction misses most) and un-whitened to the channels'
+        own values (the AR(1) filter of :meth:`_whitened` inverted frame by frame)."""
+        cov = self._covariance(held_model, resid, jac)
+        mask = torch.as_tensor(held, device=self.problem.masks.device) & self.problem.used
+        robust, self.robust = self.robust, None
+        try:
+            _, held_jac = self._jacobian(held_model, mask)
+        finally:
+            self.robust = robust
+        frames_idx = np.flatnonzero(mask.cpu().numpy())
+        n = len(frames_idx)
+        white = held_jac[:len(CHANNELS) * n].reshape(len(CHANNELS), n, -1).double()
+        a = torch.as_tensor(FRAME_CORRELATION ** np.diff(frames_idx).astype(float), dtype=torch.float64,
+                            device=white.device)
+        rows = [white[:, 0]]  # r_0 = w_0, r_k = a r_(k-1) + w_k sqrt(1 - a^2)
+        for k in range(1, n):
+            rows.append(a[k - 1] * rows[-1] + white[:, k] * torch.sqrt(1 - a[k - 1] ** 2))
+        raw = torch.stack(rows, 1)  # (C, n, P) in noise floors
+        std = torch.einsum("cnp,pq,cnq->cn", raw, cov.double(), raw).clamp(min=0).sqrt().cpu().numpy()
+        scale = 1.0 if self.frame_scale is None else self.frame_scale[frames_idx]
+        out = {}
+        for c, name in enumerate(CHANNELS):
+            values = np.full(len(held), np.nan)
+            values[frames_idx] = std[c] * self.noise[name] * scale
+            out[name] = values
+        return out
+
     def _heldout_terms(self, held_model: _Model, resid: Tensor, jac: Tensor, held: np.ndarray) -> tuple[float, float]:
         """The held-out frames' predictive deviance's two terms (:func:`torchfit.discover.predictive_terms`)
         under ``held_model``, fitted on the train frames with (N,) residual ``resid`` and (N, P)
@@ -1338,6 +1371,7 @@ class VideoProblem:
                  if self.heldout_deviance else None)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), [held_run[0] for held_run in helds],
                           terms)
+        out.payload["held_runs"] = list(helds)  # each split's (model, residual, Jacobian) on its train frames
         seconds = "" if clock is None else f", {time.perf_counter() - clock:.0f} s"
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px){seconds}")
@@ -1583,8 +1617,10 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
 
     def predicted(fit_: ModelFit) -> list[dict]:  # each held-out part as its split's fit predicts it
         out = []
-        for k, (channels, (_, held)) in enumerate(zip(fit_.payload["held_channels"], video.splits)):
-            part = locate_prediction(channels, held, times, video.noise, backward=k == 1)
+        for k, (channels, (_, held), run) in enumerate(zip(fit_.payload["held_channels"], video.splits,
+                                                           fit_.payload["held_runs"])):
+            part = locate_prediction(channels, held, times, video.noise, backward=k == 1,
+                                     spread=video.prediction_spread(*run, held))
             out.append(part | {"part": "start" if k == 1 else "end", "frames": [int(span[i]) for i in part["frames"]],
                                "count": int(held.sum())})
         return out
@@ -1941,9 +1977,8 @@ def prediction_line(parts: Sequence[dict] | None) -> list[str]:
         where = (f"the last {part['count']} frames ({first}-{last}) predicted from the rest" if part["part"] == "end"
                  else f"the first {part['count']} frames ({first}-{last}) predicted backward")
         said.append(f"{where}: {part['summary']}")
-    return [f"Where its predictions miss (frames it did not see; a prediction carries its fitted parameters' "
-            f"spread besides the noise floor, so a clip that hides nothing misses too): {'; '.join(said)}."] \
-        if said else []
+    return [f"Where its predictions miss (frames it did not see, against the noise floor and the prediction's "
+            f"own spread from its fitted parameters): {'; '.join(said)}."] if said else []
 
 
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,

@@ -233,13 +233,17 @@ _FROM_PREDICTED = {"centroid_x": {1: "right of", -1: "left of"}, "centroid_y": {
 
 
 def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: dict, backward: bool = False,
-                      threshold: float = 5.0) -> dict:
+                      threshold: float = 5.0, spread: dict | None = None) -> dict:
     """Where a prediction of held-out frames misses, in numbers and in words: :func:`locate`'s rule
-    on the predicted frames, the time counted from the fitted frames outward.
+    on the predicted frames, the time counted from the fitted frames outward, each frame's
+    residual over its floor: the noise floor, with ``spread`` the prediction's own spread added
+    in quadrature.
 
     A model fitted to all frames can take an effect's signature into its own freedoms (a drag into
     the launch speed and gravity's tilt) and leave residuals at noise level; its prediction of a
-    part it did not see carries the mismatch instead, growing away from the frames it saw.
+    part it did not see carries the mismatch instead, growing away from the frames it saw. A
+    prediction also carries its fitted parameters' spread, growing the same way, which a clip
+    that hides nothing shows too.
 
     Args:
         values: channel name -> (T,) residuals (observed minus predicted) of a fit that did not
@@ -249,12 +253,15 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
         noise: channel name -> noise floor.
         backward: the part lies before the fitted frames (predicted backward): its time runs from
             its last frame to its first.
-        threshold: a channel's trend must explain more than this many noise standard deviations,
-            and its RMS exceed twice the floor (:func:`channel_trend`), to be flagged.
+        threshold: a channel's trend must explain more than this many floors, and its RMS over
+            the floors exceed 2 (:func:`channel_trend`), to be flagged.
+        spread: channel name -> (T,) the prediction's standard deviation from its fitted
+            parameters (channel units), or None: the noise floor alone.
 
     Returns:
         ``{"frames": [first, last], "channels": {name: {...}}, "flagged": [names], "summary": str}``;
-        per channel ``rms``, ``largest`` (the largest absolute residual), ``noise``, ``unit``,
+        per channel ``rms``, ``largest`` (the largest absolute residual), ``noise``,
+        ``spread_largest`` (the prediction's largest spread there, 0 without ``spread``), ``unit``,
         ``significance``, ``trend``, ``growth`` (away from the fitted frames), ``flagged`` and,
         when flagged, ``words``.
     """
@@ -270,17 +277,21 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
         if not np.isfinite(sigma) or finite.sum() < 5:
             continue
         sigma = max(sigma, 1e-9)
-        trend = channel_trend(t[finite], part[finite], sigma, threshold)
+        own = np.zeros(len(idx)) if spread is None else np.nan_to_num(spread[name][idx])
+        floor = np.sqrt(sigma**2 + own**2)[finite]
+        trend = channel_trend(t[finite], part[finite] / floor, 1.0, threshold)
         largest = float(np.max(np.abs(part[finite])))
-        report[name] = {"rms": trend["rms"], "largest": largest, "noise": sigma, "unit": UNITS[name],
+        report[name] = {"rms": float(np.sqrt(np.mean(part[finite] ** 2))), "largest": largest, "noise": sigma,
+                        "spread_largest": float(own.max()), "unit": UNITS[name],
                         "significance": trend["significance"], "trend": trend["trend"], "growth": trend["growth"],
                         "flagged": trend["flagged"]}
         if trend["flagged"]:
             flagged.append(name)
             direction = _FROM_PREDICTED[name].get(trend["sign"], "off")
             growth = trend["growth"] + (" away from the fitted frames" if trend["trend"] else "")
+            own_words = "" if spread is None else f", the prediction's own spread up to {own.max():.2g}"
             report[name]["words"] = (f"{name} observed {direction} the prediction, {growth}, up to {largest:.3g} "
-                                     f"{UNITS[name]} (noise floor {sigma:.2g})")
+                                     f"{UNITS[name]} (noise floor {sigma:.2g}{own_words})")
             words.append(report[name]["words"])
     quiet = [name for name in report if name not in flagged]
     if quiet:
