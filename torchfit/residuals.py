@@ -262,8 +262,9 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
         ``{"frames": [first, last], "channels": {name: {...}}, "flagged": [names], "summary": str}``;
         per channel ``rms``, ``largest`` (the largest absolute residual), ``noise``,
         ``spread_largest`` (the prediction's largest spread there, 0 without ``spread``), ``unit``,
-        ``significance``, ``trend``, ``growth`` (away from the fitted frames), ``flagged`` and,
-        when flagged, ``words``.
+        ``significance`` (of the trend over the floors, which decides ``flagged``), ``trend`` and
+        ``growth`` (the miss's own, away from the fitted frames), ``flagged`` and, when flagged,
+        ``words``.
     """
     idx = np.flatnonzero(held)
     if backward:
@@ -279,16 +280,17 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
         sigma = max(sigma, 1e-9)
         own = np.zeros(len(idx)) if spread is None else np.nan_to_num(spread[name][idx])
         floor = np.sqrt(sigma**2 + own**2)[finite]
-        trend = channel_trend(t[finite], part[finite] / floor, 1.0, threshold)
+        trend = channel_trend(t[finite], part[finite] / floor, 1.0, threshold)  # decides, in floors
+        shape = channel_trend(t[finite], part[finite], sigma, threshold)  # says how the miss itself grows
         largest = float(np.max(np.abs(part[finite])))
-        report[name] = {"rms": float(np.sqrt(np.mean(part[finite] ** 2))), "largest": largest, "noise": sigma,
+        report[name] = {"rms": shape["rms"], "largest": largest, "noise": sigma,
                         "spread_largest": float(own.max()), "unit": UNITS[name],
-                        "significance": trend["significance"], "trend": trend["trend"], "growth": trend["growth"],
+                        "significance": trend["significance"], "trend": shape["trend"], "growth": shape["growth"],
                         "flagged": trend["flagged"]}
         if trend["flagged"]:
             flagged.append(name)
-            direction = _FROM_PREDICTED[name].get(trend["sign"], "off")
-            growth = trend["growth"] + (" away from the fitted frames" if trend["trend"] else "")
+            direction = _FROM_PREDICTED[name].get(shape["sign"], "off")
+            growth = shape["growth"] + (" away from the fitted frames" if shape["trend"] else "")
             own_words = "" if spread is None else f", the prediction's own spread up to {own.max():.2g}"
             report[name]["words"] = (f"{name} observed {direction} the prediction, {growth}, up to {largest:.3g} "
                                      f"{UNITS[name]} (noise floor {sigma:.2g}{own_words})")
