@@ -1508,11 +1508,15 @@ def motion_stretch(observed_cov: np.ndarray, fitted_centroid: np.ndarray, fitted
 
 
 def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: dict, train: np.ndarray,
-                  held: np.ndarray, path: Path, frame_scale: np.ndarray | None = None) -> None:
+                  held: np.ndarray, path: Path, frame_scale: np.ndarray | None = None,
+                  spreads: Sequence[dict] | None = None) -> None:
     """Residual channels against time, one column per model (baseline, then each effect added),
     ``models`` each ``(label, {channel: (T,) residuals})``, the (T,) ``train`` frames in blue and
     the (T,) ``held`` ones in red; the grey band is each channel's noise floor, times (T,)
-    ``frame_scale`` per frame where the floors grow with the speed."""
+    ``frame_scale`` per frame where the floors grow with the speed. ``spreads``, one per model
+    (``{channel: (T,) the prediction's own spread}``, NaN off the held frames;
+    :meth:`VideoProblem.prediction_spread`), adds a pink band on the held frames: the floor and
+    that spread together, what a prediction is judged against."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -1529,6 +1533,10 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
             else:
                 band = noise[name] * frame_scale
                 ax.fill_between(times, -band, band, color="0.85", zorder=0, lw=0)
+            if spreads is not None:
+                own = np.hypot(noise[name] * (1.0 if frame_scale is None else frame_scale), spreads[col][name])
+                ax.fill_between(times, -own, own, where=held & np.isfinite(own), color="mistyrose", zorder=0, lw=0,
+                                label="± floor and the prediction's spread")
             ax.axhline(0, color="k", lw=0.5)
             ax.plot(times[train], values[train], ".-", ms=3, lw=0.8, color="C0", label="fitted frames")
             # NaN between held-out parts: a forecast and a backcast are not joined across the flight
@@ -1541,7 +1549,8 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
                 ax.set_xlabel("time (s)")
     axes[0, 0].legend(fontsize=7, loc="best")
     fig.align_ylabels(axes[:, 0])
-    fig.suptitle("observed - fitted silhouette; grey band: ± noise floor", fontsize=10)
+    fig.suptitle("observed - fitted silhouette; grey band: ± noise floor"
+                 + ("\npink: ± floor and the prediction's own spread" if spreads is not None else ""), fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -1615,12 +1624,19 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     before, after = chain[0], chain[-1]
     located, located_after = locate(as_residuals(before)), locate(as_residuals(after))
 
+    spreads: dict[int, list[dict]] = {}
+
+    def spread_of(fit_: ModelFit) -> list[dict]:  # each split's prediction spread (prediction_spread)
+        if id(fit_) not in spreads:
+            spreads[id(fit_)] = [video.prediction_spread(*run, held)
+                                 for run, (_, held) in zip(fit_.payload["held_runs"], video.splits)]
+        return spreads[id(fit_)]
+
     def predicted(fit_: ModelFit) -> list[dict]:  # each held-out part as its split's fit predicts it
         out = []
-        for k, (channels, (_, held), run) in enumerate(zip(fit_.payload["held_channels"], video.splits,
-                                                           fit_.payload["held_runs"])):
-            part = locate_prediction(channels, held, times, video.noise, backward=k == 1,
-                                     spread=video.prediction_spread(*run, held))
+        for k, (channels, (_, held), spread) in enumerate(zip(fit_.payload["held_channels"], video.splits,
+                                                              spread_of(fit_))):
+            part = locate_prediction(channels, held, times, video.noise, backward=k == 1, spread=spread)
             out.append(part | {"part": "start" if k == 1 else "end", "frames": [int(span[i]) for i in part["frames"]],
                                "count": int(held.sum())})
         return out
@@ -1699,7 +1715,9 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         (out_dir / "discover.json").write_text(json.dumps(content, indent=1))
         plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
                        for label, f in labelled], times, video.noise, used & ~held_any, held_any,
-                      out_dir / "residuals.png", video.frame_scale)
+                      out_dir / "residuals.png", video.frame_scale,
+                      [{name: np.fmax.reduce([part[name] for part in spread_of(f)]) for name in CHANNELS}
+                       for _, f in labelled])
         (out_dir / "report.txt").write_text("\n".join(report) + "\n")
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]
         if overlay:
