@@ -1624,24 +1624,20 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     before, after = chain[0], chain[-1]
     located, located_after = locate(as_residuals(before)), locate(as_residuals(after))
 
-    spreads: dict[int, list[dict]] = {}
+    # per model of the chain, each split's prediction spread (prediction_spread): two Jacobians a model
+    spreads = [[video.prediction_spread(*run, held) for run, (_, held) in zip(f.payload["held_runs"], video.splits)]
+               for f in chain]
 
-    def spread_of(fit_: ModelFit) -> list[dict]:  # each split's prediction spread (prediction_spread)
-        if id(fit_) not in spreads:
-            spreads[id(fit_)] = [video.prediction_spread(*run, held)
-                                 for run, (_, held) in zip(fit_.payload["held_runs"], video.splits)]
-        return spreads[id(fit_)]
-
-    def predicted(fit_: ModelFit) -> list[dict]:  # each held-out part as its split's fit predicts it
+    def predicted(fit_: ModelFit, spread_parts: list[dict]) -> list[dict]:  # each held-out part, as predicted
         out = []
         for k, (channels, (_, held), spread) in enumerate(zip(fit_.payload["held_channels"], video.splits,
-                                                              spread_of(fit_))):
+                                                              spread_parts)):
             part = locate_prediction(channels, held, times, video.noise, backward=k == 1, spread=spread)
             out.append(part | {"part": "start" if k == 1 else "end", "frames": [int(span[i]) for i in part["frames"]],
                                "count": int(held.sum())})
         return out
 
-    located_heldout, located_heldout_after = predicted(before), predicted(after)
+    located_heldout, located_heldout_after = predicted(before, spreads[0]), predicted(after, spreads[-1])
     unexplained = _unexplained(video, after, located_after, times, used)
     effects = {}
     for step in selection.steps:
@@ -1716,8 +1712,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
                        for label, f in labelled], times, video.noise, used & ~held_any, held_any,
                       out_dir / "residuals.png", video.frame_scale,
-                      [{name: np.fmax.reduce([part[name] for part in spread_of(f)]) for name in CHANNELS}
-                       for _, f in labelled])
+                      [{name: np.fmax.reduce([part[name] for part in parts]) for name in CHANNELS}
+                       for parts in spreads])
         (out_dir / "report.txt").write_text("\n".join(report) + "\n")
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]
         if overlay:

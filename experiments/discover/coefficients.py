@@ -32,9 +32,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 SIX = (0, 1, 2, 3, 4, 5)
 
-from concealed import ball_lift, spin_hidden  # noqa: E402
-
-from torchfit.discover_video import lens_shift  # noqa: E402
+from concealed import ball_lift, lens_shift_against_truth, spin_hidden  # noqa: E402
 
 
 def _scalar_rows(truth: dict, fitted_of) -> list[tuple[str, str, float, float, float]]:
@@ -61,13 +59,9 @@ def coefficient_rows(content: dict) -> list[tuple[str, str, float, float, float]
         return []
     fitted = content["models"][-1]["params"]
     rows = _scalar_rows(truth, lambda effect: fitted.get(effect, {}))
-    shift = content["models"][-1].get("lens_shift")
-    if "lens_distortion" in truth and shift is not None:
-        # k1 and k2 trade: the lens's shift where the object went farthest (discover_video.lens_shift)
-        true = truth["lens_distortion"]
-        rows.append(("lens_distortion", "shift_px", lens_shift(true["k1"], true["k2"], [[0.0, 0.0], [0.0, 0.0]],
-                                                               shift["radius_px"], shift["focal_px"])["value_px"],
-                     shift["value_px"], shift["std_px"]))
+    shift = lens_shift_against_truth(content)
+    if shift is not None:  # k1 and k2 trade: the lens's shift where the object went farthest
+        rows.append(("lens_distortion", "shift_px", shift["true"], shift["fitted"], shift["std"]))
     lift = ball_lift(content)
     if lift is None:
         return rows

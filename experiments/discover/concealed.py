@@ -207,13 +207,9 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
         lift = ball_lift(content) if effect == "magnus" else None
         if lift is not None:  # a ball: its lift vector's part across the direction it is seen least
             params[effect] = {"lift_across": lift}
-        shift = last.get("lens_shift") if effect == "lens_distortion" and fitted else None
+        shift = lens_shift_against_truth(content) if effect == "lens_distortion" and fitted else None
         if shift is not None:  # the lens's shift where the object went farthest, against the engine's lens
-            true = content["truth_effects"][effect]
-            params[effect]["shift_px"] = {
-                "fitted": shift["value_px"], "std": shift["std_px"],
-                "true": lens_shift(true["k1"], true["k2"], [[0.0, 0.0], [0.0, 0.0]], shift["radius_px"],
-                                   shift["focal_px"])["value_px"]}
+            params[effect]["shift_px"] = shift
     # the size each true parameter needed to pass in round one, on this clip (discover's detection limit)
     limits = {effect: content["effects"].get(effect, [{}])[0].get("detectable_above", {}) for effect in truth}
     # round one's strongest candidate, passing or not: how close a control came to a false alarm
@@ -231,6 +227,19 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
             "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {})}
+
+
+def lens_shift_against_truth(content: dict) -> dict | None:
+    """A run's (``discover.json``'s ``content``) lens shift in its final model where the object went
+    farthest (``models[].lens_shift``, :func:`torchfit.discover_video.lens_shift`) and the engine's
+    lens's shift at the same point: ``{"fitted", "std", "true"}`` px; None unless the final model
+    holds a lens and the engine hid one."""
+    shift, true = content["models"][-1].get("lens_shift"), (content.get("truth_effects") or {}).get("lens_distortion")
+    if shift is None or true is None:
+        return None
+    return {"fitted": shift["value_px"], "std": shift["std_px"],
+            "true": lens_shift(true["k1"], true["k2"], [[0.0, 0.0], [0.0, 0.0]], shift["radius_px"],
+                               shift["focal_px"])["value_px"]}
 
 
 def spin_hidden(content: dict) -> bool:
