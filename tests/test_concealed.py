@@ -257,7 +257,7 @@ def test_shipped_recording_unchanged(mods, tmp_path):
 def _content(verdict: list[str], truth: dict) -> dict:
     """A discover.json as concealed.py reads it (two models, round one's scores)."""
     return {"verdict": verdict, "truth_effects": truth, "indistinguishable": [], "seconds": 1.0,
-            "iou_baseline": {"mean_fitted": 0.95, "mean_heldout": 0.94},
+            "located": {"flagged": []}, "iou_baseline": {"mean_fitted": 0.95, "mean_heldout": 0.94},
             "effects": {"quadratic_drag": [{"delta_bic": 20.0, "detectable_above": {"drag_coefficient": 0.3}}],
                         "time_scale": [{"delta_bic": 3.0, "detectable_above": {"time_scale": 0.01},
                                         "unit_delta_chi2": [1.0, 1.0, 6.0]}]},
@@ -405,6 +405,19 @@ def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
     assert table[3].startswith("| fresh 1 | 0 of 1 | 0 of 0 | none |")
     assert table[4].startswith("| **all** | 1 of 2 | 1 of 1 | none |")
     assert standing.limits_table(by_set).splitlines()[-1] == "| **1 or above** | 1 | 1 |"
+    # where the report located a miss: a named drag whose baseline's predictions miss and its
+    # final model's do not; an older run without the predictions' line counted apart
+    named = _content(["quadratic_drag"], drag(0.6))
+    named["located"] = {"flagged": ["centroid_y"]}
+    named["located_heldout"] = [{"flagged": []}, {"flagged": ["centroid_x", "scale"]}]
+    named["located_heldout_after"] = [{"flagged": []}, {"flagged": []}]
+    assert conc.flagged(named) == {"fit": True, "predicted": True, "predicted_after": False}
+    assert conc.flagged(_content([], {})) == {"fit": False, "predicted": None, "predicted_after": None}
+    by_set["first"]["drag_a"] = conc.row("drag_a", named)
+    table = standing.located_table(by_set).splitlines()
+    assert table[2] == "| effect named right | 1 | 1 | 1 of 1 | 0 of 1 | 0 |"
+    assert table[3] == "| effect not named right | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
+    assert table[4] == "| control | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
 
 
 def test_outcome_tells_honest_answers_from_failures(tmp_path):
@@ -808,6 +821,22 @@ def test_replay_selection_reruns_forward_selection_from_stored_scores():
     # a look-alike within the margin stops the replay with both reported
     content["effects"]["quadratic_drag"][0]["delta_bic"] = 55.0
     assert replay.replay(content) == ([], ["time_scale", "quadratic_drag"], True)
+
+
+def test_replay_selection_decides_the_bar_again():
+    """``min_delta_bic``: the ΔBIC and Wald tests are decided against the bar given. A clock at
+    ΔBIC 8 (Wald 7) failed both at the runs' bar of 10; at 5 it passes, at 7.5 its Wald fails; a
+    failure of another test stays; the stored run never scored the round after it: not exact."""
+    replay = _load("replay_selection", CONCEALED.parent / "replay_selection.py")
+    clock = {"delta_bic": 8.0, "wald_delta_bic": 7.0, "fails": ["delta_bic", "wald"]}
+    content = {"verdict": [], "effects": {"time_scale": [clock]}}
+    assert replay.replay(content) == ([], None, True)
+    assert replay.replay(content, min_delta_bic=10.0) == ([], None, True)
+    assert replay.replay(content, min_delta_bic=7.5) == ([], None, True)
+    assert replay.replay(content, min_delta_bic=5.0) == (["time_scale"], None, False)
+    assert replay.replay(content, drop=("wald",), min_delta_bic=7.5) == (["time_scale"], None, False)
+    clock["fails"].append("evidence_spread")
+    assert replay.replay(content, min_delta_bic=5.0) == ([], None, True)
 
 
 def test_replay_selection_lists_where_two_variants_differ(tmp_path):

@@ -681,7 +681,7 @@ def test_added_effect_starts_from_the_screened_start_nearest_the_data():
 
 
 def test_held_out_fit_sees_no_held_out_frame():
-    """The prediction's fit (held_model) of a model with a new effect uses no held-out frame, its
+    """The prediction's fit (``held_models[0]``) of a model with a new effect uses no held-out frame, its
     start included (the new effect is screened on the train frames): moving the held-out frames'
     observed centroids by 3 px moves the all-frames fit and leaves the held-out fit as it was.
     (That move makes the all-frames screening start the clock at 1.01 instead of 1.0: a held-out
@@ -702,20 +702,20 @@ def test_held_out_fit_sees_no_held_out_frame():
     video.edge_table = table
     moved = video.fit(("time_scale",), warm)
 
-    def clock(fit, which):
-        return float(fit.payload[which].values["time_scale"]["time_scale"])
+    def clock(model):
+        return float(model.values["time_scale"]["time_scale"])
 
-    assert abs(clock(moved, "model") - clock(clean, "model")) > 1e-4
-    assert clock(moved, "held_model") == clock(clean, "held_model")
-    for field in clean.payload["held_model"].cands.fields():
-        assert torch.equal(getattr(moved.payload["held_model"].cands, field),
-                           getattr(clean.payload["held_model"].cands, field))
-    assert moved.payload["held_model"].nuisances == clean.payload["held_model"].nuisances
+    assert abs(clock(moved.payload["model"]) - clock(clean.payload["model"])) > 1e-4
+    assert clock(moved.payload["held_models"][0]) == clock(clean.payload["held_models"][0])
+    for field in clean.payload["held_models"][0].cands.fields():
+        assert torch.equal(getattr(moved.payload["held_models"][0].cands, field),
+                           getattr(clean.payload["held_models"][0].cands, field))
+    assert moved.payload["held_models"][0].nuisances == clean.payload["held_models"][0].nuisances
     assert moved.heldout_rms > clean.heldout_rms  # the moved frames are predicted worse
     assert moved.heldout_deviance > clean.heldout_deviance
     # the held-out deviance's residual rows are the held-out frames' whitened channels (the
     # nuisances' prior rows, which come last, left out)
-    held_model = clean.payload["held_model"]
+    held_model = clean.payload["held_models"][0]
     rows, _ = video._jacobian(held_model, held & video.problem.used)
     frames = len(rows) - len(video.prior_terms(held_model.nuisances))
     whitened = video.whitened_channels(video.residuals(held_model), video.held)

@@ -1241,7 +1241,7 @@ class VideoProblem:
         centroid = np.hypot(channels["centroid_x"], channels["centroid_y"])
         return ModelFit(effects, rss, n_obs, n_free, self._describe(model, std[0]), math.sqrt(rss / max(n_obs, 1)),
                         float(np.mean(split_rms)),
-                        payload={"model": model, "held_model": held_models[0], "held_models": held_models,
+                        payload={"model": model, "held_models": held_models,
                                  "channels": channels,
                                  "edge_px": {"value": model.nuisances[0], "std": std[1][0],
                                              "ends_minus_sides": 2 * model.nuisances[1],
@@ -1371,7 +1371,8 @@ class VideoProblem:
                  if self.heldout_deviance else None)
         out = self._score(effects, model, self._uncertainty(model, resid, jac), [held_run[0] for held_run in helds],
                           terms)
-        out.payload["held_runs"] = list(helds)  # each split's (model, residual, Jacobian) on its train frames
+        # each split's (residual, Jacobian) on its train frames, at its model in held_models
+        out.payload["held_jacobians"] = [(held_resid, held_jac) for _, held_resid, held_jac in helds]
         seconds = "" if clock is None else f", {time.perf_counter() - clock:.0f} s"
         self.say(f"  fit {'+'.join(effects) or 'baseline'}: chi2/n {out.rss / max(out.n_obs, 1):.2f}, held-out "
                  f"{out.heldout_rms:.2f} noise units ({out.payload['heldout_centroid_px']:.2f} px){seconds}")
@@ -1625,8 +1626,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     located, located_after = locate(as_residuals(before)), locate(as_residuals(after))
 
     # per model of the chain, each split's prediction spread (prediction_spread): two Jacobians a model
-    spreads = [[video.prediction_spread(*run, held) for run, (_, held) in zip(f.payload["held_runs"], video.splits)]
-               for f in chain]
+    spreads = [[video.prediction_spread(model, *jacobian, held) for model, jacobian, (_, held)
+                in zip(f.payload["held_models"], f.payload["held_jacobians"], video.splits)] for f in chain]
 
     def predicted(fit_: ModelFit, spread_parts: list[dict]) -> list[dict]:  # each held-out part, as predicted
         out = []

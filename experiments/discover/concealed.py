@@ -226,7 +226,19 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
             "concealed": content["iou_baseline"]["mean_fitted"] >= 0.9,
             "right": bool(right), "heldout_px_before": first["heldout_centroid_px"],
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
-            "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {})}
+            "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {}),
+            "flagged": flagged(content)}
+
+
+def flagged(content: dict) -> dict:
+    """Whether a run's report located a miss (any channel flagged): the baseline's fit to all
+    frames (``located``), the baseline's predictions of the held-out parts (``located_heldout``,
+    any part) and the final model's (``located_heldout_after``); None for a run made before the
+    predictions were located (2026-11-30)."""
+    def any_part(key: str) -> bool | None:
+        return None if key not in content else any(part["flagged"] for part in content[key])
+    return {"fit": bool(content["located"]["flagged"]), "predicted": any_part("located_heldout"),
+            "predicted_after": any_part("located_heldout_after")}
 
 
 def lens_shift_against_truth(content: dict) -> dict | None:

@@ -250,9 +250,9 @@ def heldout(folder: Path, effect: str, scale_factor: str = "3") -> dict:
                     "gravity_angles": model.cands.gravity_angles[0].tolist()}
         return {"all_frames": {p: float(torch.as_tensor(v).reshape(-1)[0])
                                for p, v in refit.payload["model"].values[effect].items()},
-                "discover": summary(refit.payload["held_model"], 0),
-                "40_more": summary(refit.payload["held_model"], 40),
-                "40_more_without_early_stop": summary(refit.payload["held_model"], 40, 0.0),
+                "discover": summary(refit.payload["held_models"][0], 0),
+                "40_more": summary(refit.payload["held_models"][0], 40),
+                "40_more_without_early_stop": summary(refit.payload["held_models"][0], 40, 0.0),
                 "from_all_frames_optimum": summary(refit.payload["model"], 15)}
     return {"noise_as_is": run(1.0), f"scale_noise_times_{scale_factor}": run(float(scale_factor))}
 

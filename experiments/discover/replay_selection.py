@@ -14,6 +14,7 @@ not hidden.
     python experiments/discover/replay_selection.py SUFFIX --drop heldout
     python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms
     python experiments/discover/replay_selection.py SUFFIX --heldout-rule rms --against OTHER
+    python experiments/discover/replay_selection.py SUFFIX --min-delta-bic 0
 
 ``--against OTHER`` also lists, recording by recording, where the replayed verdicts of two
 variants' runs (``SUFFIX`` and ``OTHER``) differ, or where either needs a rerun.
@@ -51,15 +52,23 @@ def deviance_rule(margin: float) -> Callable[[dict], bool]:
 
 
 def replay(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], bool] | None = None,
-           margin: float = VIDEO_SELECTION.lookalike_margin,
-           max_effects: int = 3) -> tuple[list[str], list[str] | None, bool]:
+           margin: float = VIDEO_SELECTION.lookalike_margin, max_effects: int = 3,
+           min_delta_bic: float | None = None) -> tuple[list[str], list[str] | None, bool]:
     """(names, look-alikes or None, exact) of forward selection on a run's stored scores with
     the tests in ``drop`` ignored and, when ``heldout`` is given, the held-out test decided by it
-    (score -> passes); ``exact`` is False where the stored run did not score the round the replay
-    reached (the last name is then the replay's, unconfirmed)."""
+    (score -> passes), and, when ``min_delta_bic`` is given, the ΔBIC and Wald tests decided
+    against that bar instead of the run's (``SelectionSettings.min_delta_bic``); ``exact`` is False
+    where the stored run did not score the round the replay reached (the last name is then the
+    replay's, unconfirmed)."""
 
     def fails(score: dict) -> set[str]:
         out = set(score["fails"]) - set(drop)
+        if min_delta_bic is not None:  # the bar's two tests decided again (select_effects' rule)
+            wald = score.get("wald_delta_bic")
+            out -= {"delta_bic", "wald"}
+            out |= {test for test, failed in (("delta_bic", not score["delta_bic"] > min_delta_bic),
+                                              ("wald", wald is not None and not wald > min_delta_bic))
+                    if failed and test not in drop}
         if heldout is not None and "heldout" not in drop:
             out = (out - {"heldout"}) | (set() if heldout(score) else {"heldout"})
         return out
@@ -88,10 +97,10 @@ def reported(content: dict, names: list[str]) -> list[str]:
     return content["verdict"] if names == (content.get("verdict_withheld") or content["verdict"]) else names
 
 
-def replayed(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], bool] | None = None
-             ) -> tuple[list[str], list[str] | None, bool]:
+def replayed(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], bool] | None = None,
+             min_delta_bic: float | None = None) -> tuple[list[str], list[str] | None, bool]:
     """:func:`replay`'s names as reported (:func:`reported`), its look-alikes and whether it is exact."""
-    names, alike, exact = replay(content, drop, heldout)
+    names, alike, exact = replay(content, drop, heldout, min_delta_bic=min_delta_bic)
     return reported(content, names), alike, exact
 
 
@@ -102,7 +111,7 @@ def _said(verdict: tuple[list[str], list[str] | None, bool]) -> str:
 
 
 def differences(first: Path, second: Path, drop: tuple[str, ...] = (),
-                heldout: Callable[[dict], bool] | None = None) -> list[str]:
+                heldout: Callable[[dict], bool] | None = None, min_delta_bic: float | None = None) -> list[str]:
     """One line per recording run in both results folders whose replayed verdicts
     (:func:`replayed`) differ, or where either replay needs a rerun."""
     lines = []
@@ -111,7 +120,7 @@ def differences(first: Path, second: Path, drop: tuple[str, ...] = (),
         if not other.exists():
             continue
         content = json.loads(path.read_text())
-        a, b = replayed(content, drop, heldout), replayed(json.loads(other.read_text()), drop, heldout)
+        a, b = (replayed(run, drop, heldout, min_delta_bic) for run in (content, json.loads(other.read_text())))
         if a != b or not (a[2] and b[2]):
             lines.append(f"{path.parent.name:16s} hidden {sorted(content['truth_effects'] or {})}: "
                          f"{_said(a)} against {_said(b)}")
@@ -126,6 +135,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="decide the held-out test by the RMS rule (VIDEO_SELECTION's) or by the predictive "
                          "deviance within --margin (runs that stored it)")
     ap.add_argument("--margin", type=float, default=6.0, help="the deviance rule's margin (default 6)")
+    ap.add_argument("--min-delta-bic", type=float, metavar="BAR",
+                    help="decide the ΔBIC and Wald tests against this bar instead of the runs' "
+                         f"({VIDEO_SELECTION.min_delta_bic:g}): a candidate must lower the BIC by more than BAR")
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K",
                     help="fresh sets K instead of the six (e.g. --fresh 6: a set no rule has seen, counted apart)")
     ap.add_argument("--against", metavar="OTHER",
@@ -147,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
             names, alike, exact = replay(content)
             if not exact or names != stored:  # the replay must reproduce the stored selection
                 raise SystemExit(f"{path}: the replay without changes gives {names}, stored {stored}")
-            names, alike, exact = replay(content, drop, heldout)
+            names, alike, exact = replay(content, drop, heldout, min_delta_bic=args.min_delta_bic)
             if names != stored or not exact or (alike and not content["indistinguishable"]):
                 print(f"{fresh or 'first':8s} {path.parent.name:16s} hidden {truth}: stored {stored}, replay {names}"
                       + (f" (look-alikes {alike})" if alike else "") + ("" if exact else " — needs a rerun"))
@@ -183,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nWhere {args.suffix or 'the default'} and {args.against or 'the default'} differ, replayed:")
         for fresh in sets:
             for line in differences(HERE / "results" / f"concealed{fresh}{args.suffix}",
-                                    HERE / "results" / f"concealed{fresh}{args.against}", drop, heldout):
+                                    HERE / "results" / f"concealed{fresh}{args.against}", drop, heldout,
+                                    args.min_delta_bic):
                 print(f"{fresh or 'first':8s} {line}")
     return 0
 

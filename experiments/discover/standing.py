@@ -15,7 +15,9 @@ From the stored runs of one variant (no fitting), over the sets asked for:
    coefficient, a clock), the true departure from the null over that limit
    (``concealed.limit_ratio``) against whether the run named exactly that effect. A limit that is
    right names nearly everything above 1 and little below; one too cautious names much below 1;
-   one that flatters the data misses much above it.
+   one that flatters the data misses much above it;
+5. where the report located a miss (``concealed.flagged``): the baseline's fit to all frames, its
+   predictions of the held-out parts, and the final model's, by how each recording ended.
 
     python experiments/discover/standing.py SUFFIX [--fresh K ...] [--each]
 
@@ -105,6 +107,26 @@ def limits_table(by_set: dict, each: bool = False) -> str:
     return "\n".join(lines)
 
 
+def located_table(by_set: dict) -> str:
+    """Table 5: where the report located a miss (``concealed.flagged``), by how each recording
+    ended: runs whose baseline's fit to all frames flags a channel, whose baseline's predictions
+    of the held-out parts do, and whose final model's predictions still do (runs made before the
+    predictions were located are left out of the last two columns and counted apart)."""
+    groups: dict[str, list[dict]] = {"effect named right": [], "effect not named right": [], "control": []}
+    for rows in by_set.values():
+        for r in rows.values():
+            groups["control" if not r["truth"] else "effect named right" if r["right"]
+                   else "effect not named right"].append(r["flagged"])
+    lines = ["| recordings | runs | baseline's fit flags a channel | baseline's predictions flag one | "
+             "final model's predictions flag one | runs without the predictions' line |", "|---|---|---|---|---|---|"]
+    for label, marks in groups.items():
+        seen = [m for m in marks if m["predicted"] is not None]
+        lines.append(f"| {label} | {len(marks)} | {sum(m['fit'] for m in marks)} | "
+                     f"{sum(m['predicted'] for m in seen)} of {len(seen)} | "
+                     f"{sum(m['predicted_after'] for m in seen)} of {len(seen)} | {len(marks) - len(seen)} |")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("suffix", nargs="?", default=DEFAULT_SUFFIX,
@@ -114,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     by_set = runs(args.suffix, tuple(args.fresh) if args.fresh is not None else SEVEN)
     print(targets(by_set), outcomes(runs=by_set), verdict_grid(runs=by_set), limits_table(by_set, args.each),
-          sep="\n\n")
+          located_table(by_set), sep="\n\n")
     return 0
 
 
