@@ -415,9 +415,10 @@ def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
     assert conc.flagged(_content([], {})) == {"fit": False, "predicted": None, "predicted_after": None}
     by_set["first"]["drag_a"] = conc.row("drag_a", named)
     table = standing.located_table(by_set).splitlines()
-    assert table[2] == "| effect named right | 1 | 1 | 1 of 1 | 0 of 1 | 0 |"
-    assert table[3] == "| effect not named right | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
-    assert table[4] == "| control | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
+    assert table[2] == "| named right, held-out error halved | 1 | 1 | 1 of 1 | 0 of 1 | 0 |"  # 2 px -> 1 px
+    assert table[3] == "| named right, not halved | 0 | 0 | 0 of 0 | 0 of 0 | 0 |"
+    assert table[4] == "| effect not named right | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
+    assert table[5] == "| control | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
 
 
 def test_outcome_tells_honest_answers_from_failures(tmp_path):

@@ -338,7 +338,7 @@ def table(rows: list[dict]) -> str:
 COEFFICIENTS = ("drag_coefficient", "lift_coefficient", "lift_across")
 
 
-def _halved(r: dict) -> bool:
+def halved(r: dict) -> bool:
     """Whether a row's held-out error after its named effects is at most half of the baseline's."""
     return r["heldout_px_after"] <= 0.5 * r["heldout_px_before"]
 
@@ -365,7 +365,7 @@ def score(rows: list[dict]) -> dict:
         "effect_right": [len(named), len(effect)],
         "controls_quiet": [sum(r["right"] for r in controls), len(controls)],
         "wrong_names": sorted(r["recording"] for r in rows if set(r["verdict"]) - set(r["truth"])),
-        "heldout_halved": [sum(_halved(r) for r in named), len(named)],
+        "heldout_halved": [sum(halved(r) for r in named), len(named)],
         "coefficients_within_25pc": [sum(abs(f - t) <= 0.25 * abs(t) for _, f, t in coefficients), len(coefficients)],
         "concealed": [sum(r["concealed"] for r in effect), len(effect)],
     }
@@ -595,7 +595,7 @@ def side_by_side(suffix: str, label: str, root: Path = OUT.parent, masks: tuple[
             run_both[kind] += len(common)
             for n in common:
                 a, b = rows[0][n], rows[1][n]
-                if _verdict(a) != _verdict(b) or (a["right"] and _halved(a)) != (b["right"] and _halved(b)):
+                if _verdict(a) != _verdict(b) or (a["right"] and halved(a)) != (b["right"] and halved(b)):
                     changed.append(f"| {name_label} | {kind} | {n} | {', '.join(a['truth']) or 'nothing'} "
                                    f"| {_verdict(a)} ({_right(a)}) | {_verdict(b)} ({_right(b)}) "
                                    f"| {a['heldout_px_after']:.2f} / {b['heldout_px_after']:.2f} |")

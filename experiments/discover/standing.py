@@ -39,7 +39,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 
-from concealed import limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
+from concealed import halved, limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
 from true_masks import fresh_folder  # noqa: E402
 
 SEVEN = (0, 1, 2, 3, 4, 5, 6)
@@ -109,14 +109,16 @@ def limits_table(by_set: dict, each: bool = False) -> str:
 
 def located_table(by_set: dict) -> str:
     """Table 5: where the report located a miss (``concealed.flagged``), by how each recording
-    ended: runs whose baseline's fit to all frames flags a channel, whose baseline's predictions
+    ended (a right name split by whether it halved the held-out error): runs whose baseline's fit to all frames flags a channel, whose baseline's predictions
     of the held-out parts do, and whose final model's predictions still do (runs made before the
     predictions were located are left out of the last two columns and counted apart)."""
-    groups: dict[str, list[dict]] = {"effect named right": [], "effect not named right": [], "control": []}
+    groups: dict[str, list[dict]] = {"named right, held-out error halved": [],
+                                     "named right, not halved": [], "effect not named right": [], "control": []}
     for rows in by_set.values():
         for r in rows.values():
-            groups["control" if not r["truth"] else "effect named right" if r["right"]
-                   else "effect not named right"].append(r["flagged"])
+            group = ("control" if not r["truth"] else "effect not named right" if not r["right"]
+                     else "named right, held-out error halved" if halved(r) else "named right, not halved")
+            groups[group].append(r["flagged"])
     lines = ["| recordings | runs | baseline's fit flags a channel | baseline's predictions flag one | "
              "final model's predictions flag one | runs without the predictions' line |", "|---|---|---|---|---|---|"]
     for label, marks in groups.items():
