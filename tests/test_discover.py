@@ -136,7 +136,8 @@ def test_cli_points_fit_and_discover(tmp_path):
     assert json.loads((tmp_path / "d" / "discover.json").read_text())["verdict"] == ["quadratic_drag"]
     # the report says it in words, with the coefficient and its uncertainty (a pure number: no unit)
     report = (tmp_path / "d" / "report.txt").read_text()
-    assert "Verdict: quadratic_drag." in report
+    assert report.startswith("Verdict: quadratic_drag.\n  quadratic_drag: Aerodynamic drag, quadratic in airspeed: "
+                             "F = -½ ρ C_d A |v| v\n")  # the verdict first, its physics in one line
     value, std = re.search(r"^  quadratic_drag\.drag_coefficient = (\S+) ± (\S+)$", report, re.M).groups()
     assert abs(float(value) - 0.5) < 0.05 and 0 < float(std) < 0.05
 

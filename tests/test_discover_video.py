@@ -319,6 +319,7 @@ def test_cli_video_discover_writes_the_contract_files(tmp_path):
     assert parts[1]["frames"][0] == content["criterion_frames"][0]
     assert parts[0]["frames"][1] == content["criterion_frames"][-1]
     assert parts[0]["count"] == parts[1]["count"] == len(content["heldout_frames"]) // 2
+    assert content["report"][0].startswith("Verdict")  # the verdict first
     line = next(x for x in content["report"] if x.startswith("Where its predictions miss"))
     assert f"the last {parts[0]['count']} frames ({parts[0]['frames'][0]}-{parts[0]['frames'][1]})" in line
     assert base["heldout_rms"] == pytest.approx(np.mean(base["heldout_split_rms"]))

@@ -675,19 +675,29 @@ def parameter_lines(verdict: Sequence[str], params: dict) -> list[str]:
     return lines
 
 
+def physics_line(name: str) -> str:
+    """An effect's physics in one line, as its class states it (the docstring's first line,
+    e.g. ``quadratic_drag: Aerodynamic drag, quadratic in airspeed: F = -½ ρ C_d A |v| v``)."""
+    first = (EFFECTS[name].__doc__ or "").strip().splitlines()[0].replace("``", "").rstrip(".")
+    return f"  {name}: {first}"
+
+
 def verdict_lines(selection: Selection, params: dict, label: str = "Verdict", explained: bool = True) -> list[str]:
-    """The verdict in words, then the named effects' parameters (:func:`parameter_lines`).
-    ``explained``: False when the final model still leaves a mismatch above the noise. An empty
-    verdict never says that nothing is missing, only that nothing was detected: an effect below
-    the data's detection limits (:func:`limits_line`) is not ruled out."""
+    """The verdict in words, each named effect's physics (:func:`physics_line`), then the named
+    effects' parameters (:func:`parameter_lines`). Look-alikes reported as indistinguishable get
+    their physics too. ``explained``: False when the final model still leaves a mismatch above
+    the noise. An empty verdict never says that nothing is missing, only that nothing was
+    detected: an effect below the data's detection limits (:func:`limits_line`) is not ruled out."""
     if not selection.verdict:
         indist = [s.indistinguishable for s in selection.steps if s.indistinguishable]
         if indist:
-            return [f"{label}: {' or '.join(indist[0])} — indistinguishable on this data; nothing named."]
+            return [f"{label}: {' or '.join(indist[0])} — indistinguishable on this data; nothing named.",
+                    *(physics_line(name) for name in indist[0])]
         if not explained:
             return [f"{label}: no effect of the library beats the noise."]
         return [f"{label}: nothing detected — no effect beats the noise (a smaller one is not ruled out)."]
-    return [f"{label}: {', then '.join(selection.verdict)}.", *parameter_lines(selection.verdict, params)]
+    return [f"{label}: {', then '.join(selection.verdict)}.", *(physics_line(name) for name in selection.verdict),
+            *parameter_lines(selection.verdict, params)]
 
 
 def _size_text(values: np.ndarray, vector: bool) -> str:
@@ -816,8 +826,8 @@ def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict
         return f"{metres * 1e3:.2f} mm"
     held_start = (f", and the first {100 * holdout:.0f} % predicted backward from the rest: the mean of the two"
                   if backcast else "")
-    lines = [f"Where the baseline misses (RMS {mm(located['rms_m'])}): {located['summary']}.",
-             *verdict_lines(selection, final.params),
+    lines = [*verdict_lines(selection, final.params),
+             f"Where the baseline misses (RMS {mm(located['rms_m'])}): {located['summary']}.",
              *limits_line(selection, "data"),
              f"Evidence: RMS {mm(base.fit_rms)} -> {mm(final.fit_rms)}; held-out RMS (the last "
              f"{100 * holdout:.0f} % of each track, predicted{held_start}) {mm(base.heldout_rms)} -> "

@@ -1769,7 +1769,7 @@ def blur_named(mean_stretch: float, correlation: float, flagged: Sequence[str], 
 
 def _unexplained_lines(unexplained: dict, named: bool) -> list[str]:
     """The report's words for :func:`_unexplained` (nothing when no channel is left flagged); with
-    no effect ``named`` the mismatch is the baseline's, already worded on the report's first line."""
+    no effect ``named`` the mismatch is the baseline's, worded on the line before ("Where the baseline misses")."""
     if not unexplained["channels"]:
         return []
     if named:
@@ -1999,7 +1999,7 @@ def prediction_line(parts: Sequence[dict] | None) -> list[str]:
 def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: float | None,
                   unexplained: dict | None = None, mismatch: dict | None = None,
                   baseline_iou: float | None = None, predicted: Sequence[dict] | None = None) -> list[str]:
-    """A report a person reads in a minute (``withheld_iou``: the final model's mean IoU when the
+    """A report a person reads in a minute, the verdict first (``withheld_iou``: the final model's mean IoU when the
     verdict is withheld for it, ``baseline_iou`` the baseline's; ``unexplained``: what the final
     model leaves, :func:`_unexplained`;
     ``mismatch``: the size mismatch the edge nuisance took, :func:`size_mismatch`; ``predicted``:
@@ -2007,14 +2007,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     Every candidate that lowers the BIC by more than the threshold and is not named gets a line
     saying which test it failed."""
     base, final = chain[0], chain[-1]
-    lines = [f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}."]
-    lines += prediction_line(predicted)
-    lines += size_mismatch_lines(mismatch, selection.verdict)
-    if withheld_iou is not None:
-        lines.append(withheld_line(selection.verdict, withheld_iou, baseline_iou))
-    if video.outliers:
-        lines.append(f"Left out as segmentation failures (jumps off their neighbours): frames {video.outliers} "
-                     "of the fitted span.")
+    lines = [] if withheld_iou is None else [withheld_line(selection.verdict, withheld_iou, baseline_iou)]
     label = "Beat the noise on top of that poor fit (not a verdict)" \
         if withheld_iou is not None and selection.verdict else "Verdict"
     left = unexplained is not None and bool(unexplained["channels"])
@@ -2027,8 +2020,14 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
     lines += lift
     lines += lens_shift_lines(selection.verdict, final.payload.get("lens_shift"))
+    lines.append(f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}.")
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
+    lines += prediction_line(predicted)
+    lines += size_mismatch_lines(mismatch, selection.verdict)
+    if video.outliers:
+        lines.append(f"Left out as segmentation failures (jumps off their neighbours): frames {video.outliers} "
+                     "of the fitted span.")
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape),
                          no_size={name: "a ball's lift is the vector C_L w, and the video does not see its spin"
                                   for name in traded})
