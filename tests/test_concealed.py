@@ -955,3 +955,29 @@ def test_search_outcomes_summary_counts_what_the_second_setting_changes():
     assert "median 1.25 (range 1.10–1.40)" in text
     with pytest.raises(ValueError, match="same two finals"):
         so.summary(rows + [{**rows[0], "finals": ["6", "9"]}])
+
+
+def test_compare_runs_reports_verdicts_and_the_largest_score_change(tmp_path):
+    """compare_runs.py: runs under both roots compared; a moved ΔBIC is found in the round it moved
+    in, a changed verdict is listed, a run under one root only is left out."""
+    compare = _load("compare_runs", CONCEALED.parent / "compare_runs.py")
+
+    def write(root, name, verdict, bics):
+        folder = root / "concealed_x" / name
+        folder.mkdir(parents=True)
+        effects = {effect: [{"delta_bic": b} for b in rounds] for effect, rounds in bics.items()}
+        (folder / "discover.json").write_text(json.dumps({"verdict": verdict, "effects": effects,
+                                                          "indistinguishable": []}))
+    a, b = tmp_path / "a", tmp_path / "b"
+    write(a, "drag", ["quadratic_drag"], {"quadratic_drag": [40.0], "time_scale": [3.0, 1.0]})
+    write(b, "drag", ["quadratic_drag"], {"quadratic_drag": [40.1], "time_scale": [3.0, 1.5]})
+    write(a, "clock", [], {"time_scale": [9.0]})
+    write(b, "clock", ["time_scale"], {"time_scale": [12.0]})
+    write(a, "only_here", [], {"time_scale": [1.0]})
+    result = compare.compare(a, b)
+    assert [r["run"] for r in result["runs"]] == ["concealed_x/clock", "concealed_x/drag"]
+    assert [r["run"] for r in result["differ"]] == ["concealed_x/clock"]
+    drag = result["runs"][1]
+    assert drag["largest_delta_bic_change"] == pytest.approx(0.5) and drag["where"] == ["time_scale", 1]
+    assert compare.main([str(a), str(b), "--out", str(tmp_path / "c.json")]) == 0
+    assert json.loads((tmp_path / "c.json").read_text())["largest"][0]["run"] == "concealed_x/clock"
