@@ -1548,11 +1548,14 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
                 ax.set_ylabel(f"{name}\n({UNITS[name]})")
             if row == len(CHANNELS) - 1:
                 ax.set_xlabel("time (s)")
-    axes[0, 0].legend(fontsize=7, loc="best")
+    # the legend below the panels, clear of the data
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    columns = len(labels) if len(models) > 1 else 1  # one narrow column of panels: one entry a row
+    fig.legend(handles, labels, loc="lower center", ncol=columns, fontsize=7, frameon=False)
     fig.align_ylabels(axes[:, 0])
     fig.suptitle("observed - fitted silhouette; grey band: ± noise floor"
                  + ("\npink: ± floor and the prediction's own spread" if spreads is not None else ""), fontsize=10)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.025 * -(-len(labels) // columns) + 0.005, 1, 1))
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
