@@ -65,6 +65,7 @@ __all__ = [
     "plot_residuals",
     "select_effects",
     "alone_std",
+    "bar_failures",
     "predictive_terms",
     "wald_statistic",
     "without_weakest_block",
@@ -347,11 +348,11 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
                     settings.heldout_noise is not None and fit.heldout_rms <= settings.heldout_noise)
             wald = (fit.wald or {}).get(name)
             wald_bic = None if wald is None else wald - d_k * math.log(max(fit.n_obs, 2))
+            bar = bar_failures(bic_base - bic, wald_bic, settings.min_delta_bic)
             fails = [test for test, failed in (
-                ("delta_bic", not bic_base - bic > settings.min_delta_bic), ("unphysical", bool(outside)),
+                ("delta_bic", bar["delta_bic"]), ("unphysical", bool(outside)),
                 ("evidence_spread", not spread.get("delta_bic_without_block", 1.0) > 0),
-                ("heldout", not heldout_ok),
-                ("wald", wald_bic is not None and not wald_bic > settings.min_delta_bic)) if failed]
+                ("heldout", not heldout_ok), ("wald", bar["wald"])) if failed]
             # a parameter moves chi-squared by about (value / std)^2: the size it needs to pass
             need = math.sqrt(max(settings.min_delta_bic + d_k * math.log(max(fit.n_obs, 2)), 0.0))
             step.scores[name] = {
@@ -386,6 +387,13 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
         base = fits[_with(base.effects, winner)]
         say(f"added {winner}")
     return Selection(verdict, steps, fits, problem.noise_var)
+
+
+def bar_failures(delta_bic: float, wald_delta_bic: float | None, bar: float) -> dict[str, bool]:
+    """Whether a candidate fails the criterion's two tests against ``bar``
+    (``SelectionSettings.min_delta_bic``): its ΔBIC, and its Wald statistic less its ``Δk ln n``
+    (``wald_delta_bic``; None where the problem gives none, which then passes)."""
+    return {"delta_bic": not delta_bic > bar, "wald": wald_delta_bic is not None and not wald_delta_bic > bar}
 
 
 def estimate_noise(data: PointData, window: int = 7, degree: int = 2) -> float:

@@ -32,7 +32,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from torchfit.discover import SelectionSettings
+from torchfit.discover import SelectionSettings, bar_failures
 from torchfit.discover_video import VIDEO_SELECTION
 
 HERE = Path(__file__).resolve().parent
@@ -63,12 +63,9 @@ def replay(content: dict, drop: tuple[str, ...] = (), heldout: Callable[[dict], 
 
     def fails(score: dict) -> set[str]:
         out = set(score["fails"]) - set(drop)
-        if min_delta_bic is not None:  # the bar's two tests decided again (select_effects' rule)
-            wald = score.get("wald_delta_bic")
-            out -= {"delta_bic", "wald"}
-            out |= {test for test, failed in (("delta_bic", not score["delta_bic"] > min_delta_bic),
-                                              ("wald", wald is not None and not wald > min_delta_bic))
-                    if failed and test not in drop}
+        if min_delta_bic is not None:  # the bar's two tests decided again, by select_effects' rule
+            bar = bar_failures(score["delta_bic"], score.get("wald_delta_bic"), min_delta_bic)
+            out = (out - set(bar)) | {test for test, failed in bar.items() if failed and test not in drop}
         if heldout is not None and "heldout" not in drop:
             out = (out - {"heldout"}) | (set() if heldout(score) else {"heldout"})
         return out
