@@ -799,9 +799,10 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         search_final: int | None = None) -> None:
-    # the set, or its copy without motion blur, at another H.264 quality or through a camera curve
-    recordings = fresh_folder(fresh, sharp, crf, transfer)
+         search_final: int | None = None, scale: int = 1) -> None:
+    # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
+    # through a camera of more pixels
+    recordings = fresh_folder(fresh, sharp, crf, transfer, scale)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
     settings = (segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
                                     coverage_clip, fit_exposure, point_spread, exposure_taps,
@@ -828,7 +829,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
         sys.exit(f"no recordings in {recordings}: run python experiments/discover/make_concealed.py"
                  + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else "")
                  + (" --sharp" if sharp else "") + (f" --crf {crf}" if crf is not None else "")
-                 + (f" --transfer {transfer}" if transfer else ""))
+                 + (f" --transfer {transfer}" if transfer else "") + (f" --scale {scale}" if scale != 1 else ""))
     else:
         folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
@@ -862,6 +863,9 @@ if __name__ == "__main__":
                     help="the set remade without motion blur (make_concealed.py --sharp; results/..._sharp/)")
     ap.add_argument("--crf", type=int, default=None, metavar="C",
                     help="the set encoded at H.264 quality C (make_concealed.py --crf C; results/..._crf<C>/)")
+    ap.add_argument("--scale", type=int, default=1, metavar="N",
+                    help="the set filmed with N times the pixels along each side (make_concealed.py --scale N; "
+                         "results/..._x<N>/)")
     ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
                     help="the set stored through this camera curve (make_concealed.py --transfer T), segmented "
                          "with SegmentationSettings.transfer T (results/..._<T>/)")
@@ -1066,6 +1070,9 @@ if __name__ == "__main__":
         ap.error("--sharp is a concealed set without motion blur: not with --shutter or --shipped")
     if args.crf is not None and (args.shutter or args.shipped or args.sharp):
         ap.error("--crf is a concealed set at another H.264 quality: not with --shutter, --shipped or --sharp")
+    if args.scale < 1 or (args.scale != 1 and (args.shutter or args.shipped)):
+        ap.error(f"--scale is a concealed set through a camera of N >= 1 times the pixels (not with --shutter or "
+                 f"--shipped), got {args.scale}")
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     if (args.transfer and (args.shutter or args.shipped or args.true_masks)) or (args.read_as and not args.transfer):
@@ -1080,4 +1087,4 @@ if __name__ == "__main__":
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
-         declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final)
+         declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale)

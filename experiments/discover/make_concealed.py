@@ -20,7 +20,8 @@ Options: ``--out DIR`` (default experiments/discover/recordings, git-ignored), `
 recordings_shutter/: ``shutter_specs``), ``--sharp`` (the set without motion blur: one render per frame
 at its time, in recordings[_fresh<K>]_sharp/; everything else as in the set), ``--crf C`` (the set
 encoded at H.264 quality C instead of 14, in recordings[_fresh<K>]_crf<C>/: how the compression
-moves the verdicts).
+moves the verdicts), ``--scale N`` (the set through a camera with N times the pixels along each
+side, the same lens and throws, in recordings[_fresh<K>]_x<N>/).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -181,6 +182,13 @@ def shutter_specs() -> list[tuple[mr.RecordingSpec, str]]:
     return out
 
 
+def scaled_spec(spec: mr.RecordingSpec, scale: int) -> mr.RecordingSpec:
+    """The same recording through a camera with ``scale`` times the pixels along each side: the
+    same field of view (so the focal length in pixels scales too), and the in-view margin scaled
+    with the pixels, so that the same throw is drawn and kept."""
+    return spec.replace(width=spec.width * scale, height=spec.height * scale, margin_px=spec.margin_px * scale)
+
+
 def twin_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:
     """The same recording without its hidden effect."""
     return spec.replace(fluid=False, fluid_sphere=False, fluidcoef=None, hidden_weight=None,
@@ -243,6 +251,9 @@ def main(argv=None) -> int:
     ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
                     help="store the frames through this camera curve (the light summed first), in "
                          "recordings[_fresh<K>]_<curve>/ (segment with SegmentationSettings.transfer)")
+    ap.add_argument("--scale", type=int, default=1, metavar="N",
+                    help="a camera with N times the pixels along each side (the same lens and field of view, "
+                         "the same throws), in recordings[_fresh<K>]_x<N>/")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -254,7 +265,11 @@ def main(argv=None) -> int:
         raise SystemExit("--sharp is a concealed set without motion blur: not with --shutter")
     if args.crf is not None and (args.shutter or args.sharp or not 0 <= args.crf <= 51):
         raise SystemExit(f"--crf needs an H.264 quality 0-51 (not with --shutter or --sharp), got {args.crf}")
+    if args.scale < 1 or (args.scale != 1 and args.shutter):
+        raise SystemExit(f"--scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.scale}")
     specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)
+    if args.scale != 1:
+        specs = [(scaled_spec(s, args.scale), what) for s, what in specs]
     if args.crf is not None:
         specs = [(s.replace(crf=args.crf), what) for s, what in specs]
     if args.sharp:
@@ -273,7 +288,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer))
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer, args.scale))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)

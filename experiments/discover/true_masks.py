@@ -33,13 +33,15 @@ from torchfit.video import SegmentationSettings, _boxes, load_observation, raw_m
 HERE = Path(__file__).resolve().parent
 
 
-def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None, transfer: str | None = None) -> Path:
+def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None, transfer: str | None = None,
+                 scale: int = 1) -> Path:
     """Where concealed set ``fresh`` lives (0: the first set; ``sharp``: its copy without motion blur;
     ``crf``: its copy encoded at that H.264 quality; ``transfer``: its copy stored through that
-    curve). Here, not in make_concealed.py, so that concealed.py finds the sets without MuJoCo."""
+    curve; ``scale``: its copy filmed with ``scale`` times the pixels along each side, ``_x<scale>``).
+    Here, not in make_concealed.py, so that concealed.py finds the sets without MuJoCo."""
     folder = HERE / (f"recordings_fresh{fresh}" if fresh else "recordings")
     return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
-                            + (f"_{transfer}" if transfer else ""))
+                            + (f"_{transfer}" if transfer else "") + (f"_x{scale}" if scale != 1 else ""))
 
 
 def recording_parts(folder: Path) -> tuple[dict, object, Camera]:
