@@ -163,6 +163,27 @@ def test_crf_set_folders(mods):
     assert mc.fresh_folder(3, crf=20).name == "recordings_fresh3_crf20"
 
 
+def test_scaled_set_draws_the_same_throws_through_more_pixels(mods):
+    """--scale N: the same recordings through a camera with N times the pixels along each side
+    (the same field of view), the in-view margin scaled with them, so the same throw is drawn: the
+    same orientation and spin, and a position and velocity that differ by the principal point's
+    half pixel alone (under a millimetre, a millimetre a second)."""
+    mr, mc = mods
+    specs = [spec for spec, _ in mc.concealed_specs(7)]
+    for spec in specs:
+        scaled = mc.scaled_spec(spec, 2)
+        assert (scaled.width, scaled.height, scaled.margin_px) == (2 * spec.width, 2 * spec.height, 2 * spec.margin_px)
+        assert scaled.replace(width=spec.width, height=spec.height, margin_px=spec.margin_px) == spec
+    spec = next(s for s in specs if s.name == "drag_box")
+    mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+    (p, q, v, w), _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
+    scaled = mc.scaled_spec(spec, 2)
+    (p2, q2, v2, w2), _ = mr.resolve_ic(scaled, mr.Scene(scaled, mesh), mesh)
+    assert np.array_equal(q, q2) and np.array_equal(w, w2)
+    assert 0 < np.abs(p2 - p).max() < 1e-3 and np.abs(v2 - v).max() < 1e-3
+    assert mc.fresh_folder(7, scale=2).name == "recordings_fresh7_x2" and mc.fresh_folder(0, scale=1).name == "recordings"
+
+
 @pytest.mark.parametrize("codec, full_colour", [("h264_444", True), ("h264", False)])
 def test_h264_444_keeps_colour_at_full_resolution(mods, tmp_path, codec, full_colour):
     """A one-pixel red column on grey, lossless (crf 0): yuv444p gives it back, yuv420p halves

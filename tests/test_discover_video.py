@@ -220,6 +220,7 @@ def test_prediction_spread_is_the_fits_covariance_carried_to_each_held_frames_ch
     train, held = video.splits[0]
     fitted, resid, jac = video._lm(video._extend(model, ("time_scale",)), train, 10)
     spread = video.prediction_spread(fitted, resid, jac, held)
+    assert video.robust == 2.0  # the held frames' Jacobian is taken on squares without touching the setting
     cov = video._covariance(fitted, resid, jac)
     free = torch.nonzero(cov.diagonal() > 0).flatten()
     h, columns = 1e-4, []

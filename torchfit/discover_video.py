@@ -753,7 +753,7 @@ class VideoProblem:
         scale = 1.0 if self.frame_scale is None else self.frame_scale[mask]
         return np.stack([channels[c][mask] / self.noise[c] / scale for c in CHANNELS], -1)
 
-    def _whitened(self, values: Tensor, mask: np.ndarray, channel: str) -> Tensor:
+    def _whitened(self, values: Tensor, mask: np.ndarray, channel: str, squares: bool = False) -> Tensor:
         """(B, N) residuals of the N frames in ``mask`` in units of independent noise.
 
         The noise is AR(1) from frame to frame (lag-one correlation ``FRAME_CORRELATION``, noise
@@ -762,7 +762,8 @@ class VideoProblem:
         by their floors first) with ``a = rho^gap`` for frames ``gap`` apart (exact for gaps): the sum
         of squares is the residual's chi-squared under that noise. A smooth trend counts as
         fewer independent observations than the frames it spans. With :attr:`robust`, each is
-        then :func:`torchfit.residuals.huber_root`'s, so the sum of squares is Huber's cost.
+        then :func:`torchfit.residuals.huber_root`'s, so the sum of squares is Huber's cost;
+        ``squares`` keeps them whitened alone (a prediction's spread, :meth:`prediction_spread`).
         """
         frames = torch.as_tensor(np.flatnonzero(mask), dtype=values.dtype, device=values.device)
         scaled = values / self.noise[channel]
@@ -772,7 +773,7 @@ class VideoProblem:
         if FRAME_CORRELATION != 0 and len(frames) >= 2:
             a = FRAME_CORRELATION ** (frames[1:] - frames[:-1])
             white = torch.cat((scaled[:, :1], (scaled[:, 1:] - a * scaled[:, :-1]) / torch.sqrt(1 - a * a)), -1)
-        return white if self.robust is None else huber_root(white, self.robust)
+        return white if squares or self.robust is None else huber_root(white, self.robust)
 
     def whitened_channels(self, channels: dict, mask: np.ndarray) -> dict:
         """Channel name -> (N,) whitened residuals of the frames in ``mask``, from (T,) channels
@@ -787,14 +788,16 @@ class VideoProblem:
         :meth:`_whitened`), then the Q nuisances' prior terms (:meth:`prior_terms`)."""
         return self._vector_of(self._fitted_moments(cands, effects, self._fraction(nuisances)), nuisances, mask)
 
-    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], nuisances: tuple[float, ...], mask: Tensor) -> Tensor:
-        """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`)."""
+    def _vector_of(self, fitted: tuple[Tensor, Tensor, Tensor], nuisances: tuple[float, ...], mask: Tensor,
+                   squares: bool = False) -> Tensor:
+        """:meth:`_vector` from B candidates' fitted moments (:meth:`_fitted_moments`); ``squares``
+        as in :meth:`_whitened`."""
         channels = self._channels_of(fitted, nuisances)
         terms = self.prior_terms(nuisances)
         prior = torch.tensor(terms, dtype=channels[CHANNELS[0]].dtype, device=mask.device).expand(len(fitted[0]),
                                                                                                   len(terms))
         frames = mask.cpu().numpy()
-        return torch.cat([self._whitened(channels[c][:, mask], frames, c) for c in CHANNELS] + [prior], -1)
+        return torch.cat([self._whitened(channels[c][:, mask], frames, c, squares) for c in CHANNELS] + [prior], -1)
 
     def _build(self, model: _Model, state: Tensor,
                extra: Tensor) -> tuple[Candidates, list[Effect], tuple[float, ...]]:
@@ -863,7 +866,7 @@ class VideoProblem:
         only Magnus lift reveals its spin (at :data:`LIFT_GAUGE`; the spin carries ``C_L ω``)."""
         return {("magnus", "lift_coefficient")} if self.hidden and _spin_seen_by_lift_alone(model.values) else set()
 
-    def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3) -> tuple[Tensor, Tensor]:
+    def _jacobian(self, model: _Model, mask: Tensor, step: float = 1e-3, squares: bool = False) -> tuple[Tensor, Tensor]:
         """Residual (N,) at ``model`` and its (N, P) Jacobian per scaled unit (forward differences).
 
         One batch of flights and renders holds the unmoved model, the free state columns' steps
@@ -873,11 +876,12 @@ class VideoProblem:
         observed outlines and a point spread only the fitted covariances, so they reuse the
         unmoved render.
         Held-fixed columns (:meth:`_frozen`) are zero: LM steps and the covariance skip them.
+        ``squares``: of the whitened residuals without Huber's root (:meth:`_whitened`).
         """
-        return self._jacobians([model], [mask], step)[0]
+        return self._jacobians([model], [mask], step, squares)[0]
 
     def _jacobians(self, models: Sequence[_Model], masks: Sequence[Tensor],
-                   step: float = 1e-3) -> list[tuple[Tensor, Tensor]]:
+                   step: float = 1e-3, squares: bool = False) -> list[tuple[Tensor, Tensor]]:
         """:meth:`_jacobian` of several models, each on its own frames (``masks``, one (T,) per
         model), whose batched rows share one flight and render."""
         plans, blocks, block_masks = [], [], []
@@ -902,17 +906,19 @@ class VideoProblem:
                 block_masks.append(mask)
             plans.append((frozen, free, exposure_step))
         with torch.no_grad():
-            evaluated = iter(self._evaluate(blocks, block_masks))
+            evaluated = iter(self._evaluate(blocks, block_masks, squares))
             out = []
             for model, mask, (frozen, free, exposure_step) in zip(models, masks, plans):
                 fitted, rows = next(evaluated)
                 exposure_row = None if exposure_step is None else (next(evaluated)[1][0], exposure_step)
-                out.append(self._assemble_jacobian(model, fitted, rows, frozen, free, mask, step, exposure_row))
+                out.append(self._assemble_jacobian(model, fitted, rows, frozen, free, mask, step, exposure_row,
+                                                   squares))
             return out
 
     def _assemble_jacobian(self, model: _Model, fitted: tuple[Tensor, Tensor, Tensor], rows: Tensor, frozen: Tensor,
                            free: Tensor, mask: Tensor, step: float,
-                           exposure_row: tuple[Tensor, float] | None = None) -> tuple[Tensor, Tensor]:
+                           exposure_row: tuple[Tensor, float] | None = None,
+                           squares: bool = False) -> tuple[Tensor, Tensor]:
         """Residual and Jacobian of ``model`` from its batched rows (1 + F + E, N: unmoved, the F
         free state columns' steps, the E effect parameters' steps) and their fitted moments; the
         edge bias's and a point spread's columns are computed here from the unmoved render.
@@ -934,12 +940,12 @@ class VideoProblem:
             shifted = zero_extra.clone()
             shifted[n_effect + k] = step
             _, _, nuisances = self._build(model, zero_state, shifted)
-            jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, nuisances, mask)[0] - base) / step
+            jac[:, 14 + n_effect + k] = (self._vector_of(unmoved, nuisances, mask, squares)[0] - base) / step
         jac[:, frozen.to(jac.device)] = 0.0  # a held effect parameter's column too (:meth:`_frozen`)
         return base.double(), jac.double()
 
     def _evaluate(self, blocks: Sequence[tuple[Candidates, dict, tuple[float, ...]]],
-                  masks: Sequence[Tensor]) -> list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]]:
+                  masks: Sequence[Tensor], squares: bool = False) -> list[tuple[tuple[Tensor, Tensor, Tensor], Tensor]]:
         """Several models' rows in one flight and render.
 
         Args:
@@ -948,6 +954,7 @@ class VideoProblem:
                 models may hold different effects, :func:`_stacked_values`) and nuisances
                 (:class:`_Model`'s ``nuisances``).
             masks: per block, the (T,) frames its vectors hold.
+            squares: the vectors without Huber's root (:meth:`_whitened`).
 
         Returns:
             Per block, its fitted moments (:meth:`_fitted_moments`, B_k rows) and its (B_k, N_k + Q)
@@ -966,7 +973,7 @@ class VideoProblem:
         out, start = [], 0
         for (block_cands, _, nuisances), mask in zip(blocks, masks):
             part = tuple(m[start:start + len(block_cands)] for m in fitted)
-            out.append((part, self._vector_of(part, nuisances, mask)))
+            out.append((part, self._vector_of(part, nuisances, mask, squares)))
             start += len(block_cands)
         return out
 
@@ -1090,11 +1097,7 @@ class VideoProblem:
         own values (the AR(1) filter of :meth:`_whitened` inverted frame by frame)."""
         cov = self._covariance(held_model, resid, jac)
         mask = torch.as_tensor(held, device=self.problem.masks.device) & self.problem.used
-        robust, self.robust = self.robust, None
-        try:
-            _, held_jac = self._jacobian(held_model, mask)
-        finally:
-            self.robust = robust
+        _, held_jac = self._jacobian(held_model, mask, squares=True)
         frames_idx = np.flatnonzero(mask.cpu().numpy())
         n = len(frames_idx)
         white = held_jac[:len(CHANNELS) * n].reshape(len(CHANNELS), n, -1).double()
