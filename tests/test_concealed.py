@@ -440,6 +440,17 @@ def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
     assert table[3] == "| named right, not halved | 0 | 0 | 0 of 0 | 0 of 0 | 0 |"
     assert table[4] == "| effect not named right | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
     assert table[5] == "| control | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
+    # two variants of the same set side by side: a drag below its limit (0.12 of 0.3) named where
+    # the other's limit is 0.1, a control quiet in both
+    sharper = _content(["quadratic_drag"], drag(0.12))
+    sharper["effects"]["quadratic_drag"][0]["detectable_above"] = {"drag_coefficient": 0.1}
+    first = {"first": {"drag_a": conc.row("drag_a", _content([], drag(0.12))),
+                       "control_x": conc.row("control_x", _content([], {}))}}
+    second = {"first": {"drag_a": conc.row("drag_a", sharper), "control_x": conc.row("control_x", _content([], {}))}}
+    lines = standing.beside(first, second, ("small", "large")).splitlines()
+    assert lines[2] == "| first | 1 | 0 | 1 | 1 of 1 | 1 of 1 | drag_a below limit → right |"
+    assert lines[3] == "| **all** | 1 | 0 | 1 | 1 | 1 | |"
+    assert "large's detection limit is 3.00 times lower than small's" in lines[-1]
 
 
 def test_outcome_tells_honest_answers_from_failures(tmp_path):

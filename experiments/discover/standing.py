@@ -17,9 +17,12 @@ From the stored runs of one variant (no fitting), over the sets asked for:
    right names nearly everything above 1 and little below; one too cautious names much below 1;
    one that flatters the data misses much above it;
 5. where the report located a miss (``concealed.flagged``): the baseline's fit to all frames, its
-   predictions of the held-out parts, and the final model's, by how each recording ended.
+   predictions of the held-out parts, and the final model's, by how each recording ended;
+6. with ``--beside OTHER``, another variant's runs of the same sets side by side: right names
+   and quiet controls of each, the recordings whose outcome differs, and by how much the other's
+   detection limits are lower.
 
-    python experiments/discover/standing.py SUFFIX [--fresh K ...] [--each]
+    python experiments/discover/standing.py SUFFIX [--fresh K ...] [--each] [--beside OTHER]
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>``
 (``_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12`` for the default,
@@ -33,13 +36,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import statistics
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 
-from concealed import halved, limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
+from concealed import GRID_WORDS, halved, limit_ratio, outcome, outcomes, row, score, verdict_grid  # noqa: E402
 from true_masks import fresh_folder  # noqa: E402
 
 SEVEN = (0, 1, 2, 3, 4, 5, 6)
@@ -129,16 +134,56 @@ def located_table(by_set: dict) -> str:
     return "\n".join(lines)
 
 
+def beside(by_set: dict, other: dict, labels: tuple[str, str]) -> str:
+    """Table 6, two variants of the same sets side by side (``by_set`` and ``other``, as
+    :func:`runs` gives them; ``labels`` their names): per set the right names (a control's quiet)
+    of each, then every recording whose outcome differs, and over every scalar case both ran the
+    factor by which the second's detection limit is below the first's (its truth over limit
+    over the first's, :func:`concealed.limit_ratio`)."""
+    def word(r: dict) -> str:
+        return ("quiet" if r["right"] else "ALARM") if not r["truth"] else GRID_WORDS[outcome(r)]
+
+    lines = [f"| set | effect cases | right: {labels[0]} | right: {labels[1]} | controls quiet: {labels[0]} | "
+             f"controls quiet: {labels[1]} | recordings whose outcome differs ({labels[0]} → {labels[1]}) |",
+             "|---|---|---|---|---|---|---|"]
+    totals, factors = [0] * 5, []
+    for label, rows in by_set.items():
+        pairs = [(rows[n], other[label][n]) for n in rows if n in other.get(label, {})]
+        effect = [(a, b) for a, b in pairs if a["truth"]]
+        control = [(a, b) for a, b in pairs if not a["truth"]]
+        counts = [len(effect), sum(a["right"] for a, _ in effect), sum(b["right"] for _, b in effect),
+                  sum(a["right"] for a, _ in control), sum(b["right"] for _, b in control)]
+        totals = [t + c for t, c in zip(totals, counts)]
+        moved = [f"{a['recording']} {word(a)} → {word(b)}" for a, b in pairs if word(a) != word(b)]
+        lines.append(f"| {label} | {counts[0]} | {counts[1]} | {counts[2]} | {counts[3]} of {len(control)} | "
+                     f"{counts[4]} of {len(control)} | {'; '.join(moved) or 'none'} |")
+        for a, b in effect:
+            ra, rb = limit_ratio(a), limit_ratio(b)
+            if ra and rb and math.isfinite(ra) and math.isfinite(rb):
+                factors.append(rb / ra)
+    lines.append(f"| **all** | {totals[0]} | {totals[1]} | {totals[2]} | {totals[3]} | {totals[4]} | |")
+    if factors:
+        lines.append(f"\nOn {len(factors)} scalar cases both ran, {labels[1]}'s detection limit is "
+                     f"{statistics.median(factors):.2f} times lower than {labels[0]}'s (median; "
+                     f"{min(factors):.2f}–{max(factors):.2f}).")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("suffix", nargs="?", default=DEFAULT_SUFFIX,
                     help=f"results folder suffix (default {DEFAULT_SUFFIX}, the default path; '' the masks)")
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K", help="these sets instead of the seven (0 the first)")
     ap.add_argument("--each", action="store_true", help="list every scalar case's truth over its limit")
+    ap.add_argument("--beside", metavar="OTHER", help="another suffix's runs of the same sets side by side "
+                    "with these (a sixth table; e.g. the default beside its camera of twice the pixels, _x2)")
     args = ap.parse_args(argv)
-    by_set = runs(args.suffix, tuple(args.fresh) if args.fresh is not None else SEVEN)
+    sets = tuple(args.fresh) if args.fresh is not None else SEVEN
+    by_set = runs(args.suffix, sets)
     print(targets(by_set), outcomes(runs=by_set), verdict_grid(runs=by_set), limits_table(by_set, args.each),
           located_table(by_set), sep="\n\n")
+    if args.beside is not None:
+        print("\n" + beside(by_set, runs(args.beside, sets), (args.suffix or "''", args.beside)))
     return 0
 
 
