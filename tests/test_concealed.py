@@ -451,6 +451,8 @@ def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
     assert lines[2] == "| first | 1 | 0 | 1 | 1 of 1 | 1 of 1 | drag_a below limit → right |"
     assert lines[3] == "| **all** | 1 | 0 | 1 | 1 | 1 | |"
     assert "large's detection limit is 3.00 times lower than small's" in lines[-1]
+    assert "small's detection limit is 3.00 times higher than large's" in standing.beside(
+        second, first, ("large", "small")).splitlines()[-1]
 
 
 def test_outcome_tells_honest_answers_from_failures(tmp_path):

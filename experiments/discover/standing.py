@@ -163,9 +163,10 @@ def beside(by_set: dict, other: dict, labels: tuple[str, str]) -> str:
                 factors.append(rb / ra)
     lines.append(f"| **all** | {totals[0]} | {totals[1]} | {totals[2]} | {totals[3]} | {totals[4]} | |")
     if factors:
+        median, low, high = statistics.median(factors), min(factors), max(factors)
         lines.append(f"\nOn {len(factors)} scalar cases both ran, {labels[1]}'s detection limit is "
-                     f"{statistics.median(factors):.2f} times lower than {labels[0]}'s (median; "
-                     f"{min(factors):.2f}–{max(factors):.2f}).")
+                     + (f"{median:.2f} times lower than {labels[0]}'s (median; {low:.2f}–{high:.2f})." if median >= 1
+                        else f"{1 / median:.2f} times higher than {labels[0]}'s (median; {1 / high:.2f}–{1 / low:.2f})."))
     return "\n".join(lines)
 
 
