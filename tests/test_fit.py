@@ -192,6 +192,11 @@ def test_segmentation_settings_come_from_the_config():
     assert passes.albedo_passes == 1
     with pytest.raises(ConfigError, match="data.segmentation: transfer must be one of"):
         _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "gamma"}))
+    assert _segmentation_settings(default.segmentation).coverage_near_px == 4
+    band = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": 8}))
+    assert band.coverage_near_px == 8
+    with pytest.raises(ConfigError, match="data.segmentation: coverage_near_px must be >= 1, got 0"):
+        _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": 0}))
 
 
 def test_the_log_says_how_pixel_values_were_read():

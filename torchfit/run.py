@@ -68,13 +68,15 @@ class ConfigError(ValueError):
 
 
 def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:
-    """``data.segmentation`` (method, transfer, albedo_passes) as :class:`SegmentationSettings`;
-    ``albedo_passes: null`` is one pass where discover compares the soft coverage (``coverage``:
-    the motion blur modelled, the path measured with it) and none elsewhere."""
-    passes = node.get("albedo_passes")
+    """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px) as
+    :class:`SegmentationSettings`; ``albedo_passes: null`` is one pass where discover compares the
+    soft coverage (``coverage``: the motion blur modelled, the path measured with it) and none
+    elsewhere; ``coverage_near_px`` absent or null is the settings' own band."""
+    passes, band = node.get("albedo_passes"), node.get("coverage_near_px")
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
-                                    albedo_passes=(1 if coverage else 0) if passes is None else int(passes))
+                                    albedo_passes=(1 if coverage else 0) if passes is None else int(passes),
+                                    **({} if band is None else {"coverage_near_px": int(band)}))
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 
