@@ -493,6 +493,12 @@ def outcomes(root: Path = OUT.parent, suffix: str = "", runs: dict | None = None
 GRID_WORDS = dict(zip(OUTCOMES, ("right", "tie", "below limit", "MISSED", "WITHHELD", "WRONG")))
 
 
+def grid_word(r: dict) -> str:
+    """A recording's :func:`row` in a word: its :func:`outcome`'s (:data:`GRID_WORDS`), or a
+    control's "quiet" or "ALARM"."""
+    return GRID_WORDS[outcome(r)] if r["truth"] else ("quiet" if r["right"] else "ALARM")
+
+
 def verdict_grid(root: Path = OUT.parent, suffix: str = "", runs: dict | None = None) -> str:
     """Every recording against every set on the segmented video (``suffix``: a variant's
     results; or ``runs`` given, as for :func:`outcomes`), each cell its :func:`outcome` in a word
@@ -508,7 +514,7 @@ def verdict_grid(root: Path = OUT.parent, suffix: str = "", runs: dict | None = 
             if r is None:
                 cells.append("")
                 continue
-            word = GRID_WORDS[outcome(r)] if r["truth"] else ("quiet" if r["right"] else "ALARM")
+            word = grid_word(r)
             said = ", ".join(r["verdict"] or r.get("verdict_withheld") or (r["indistinguishable"] or [[]])[0])
             cells.append(word + (f": {said}" if said and word != "right" else ""))
         hidden = next((", ".join(r["truth"]) for rows in runs.values() if (r := rows.get(name))), "")

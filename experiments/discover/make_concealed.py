@@ -267,9 +267,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--crf needs an H.264 quality 0-51 (not with --shutter or --sharp), got {args.crf}")
     if args.scale < 1 or (args.scale != 1 and args.shutter):
         raise SystemExit(f"--scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.scale}")
-    specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)
-    if args.scale != 1:
-        specs = [(scaled_spec(s, args.scale), what) for s, what in specs]
+    specs = [(scaled_spec(s, args.scale), what) for s, what in (shutter_specs() if args.shutter
+                                                                  else concealed_specs(args.fresh))]
     if args.crf is not None:
         specs = [(s.replace(crf=args.crf), what) for s, what in specs]
     if args.sharp:

@@ -44,7 +44,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
 
-from concealed import GRID_WORDS, halved, limit_ratio, outcome, outcomes, row, score, verdict_grid  # noqa: E402
+from concealed import grid_word, halved, limit_ratio, outcomes, row, score, verdict_grid  # noqa: E402
 from true_masks import fresh_folder  # noqa: E402
 
 SEVEN = (0, 1, 2, 3, 4, 5, 6)
@@ -140,9 +140,6 @@ def beside(by_set: dict, other: dict, labels: tuple[str, str]) -> str:
     of each, then every recording whose outcome differs, and over every scalar case both ran the
     factor by which the second's detection limit is below the first's (its truth over limit
     over the first's, :func:`concealed.limit_ratio`)."""
-    def word(r: dict) -> str:
-        return ("quiet" if r["right"] else "ALARM") if not r["truth"] else GRID_WORDS[outcome(r)]
-
     lines = [f"| set | effect cases | right: {labels[0]} | right: {labels[1]} | controls quiet: {labels[0]} | "
              f"controls quiet: {labels[1]} | recordings whose outcome differs ({labels[0]} → {labels[1]}) |",
              "|---|---|---|---|---|---|---|"]
@@ -154,7 +151,7 @@ def beside(by_set: dict, other: dict, labels: tuple[str, str]) -> str:
         counts = [len(effect), sum(a["right"] for a, _ in effect), sum(b["right"] for _, b in effect),
                   sum(a["right"] for a, _ in control), sum(b["right"] for _, b in control)]
         totals = [t + c for t, c in zip(totals, counts)]
-        moved = [f"{a['recording']} {word(a)} → {word(b)}" for a, b in pairs if word(a) != word(b)]
+        moved = [f"{a['recording']} {grid_word(a)} → {grid_word(b)}" for a, b in pairs if grid_word(a) != grid_word(b)]
         lines.append(f"| {label} | {counts[0]} | {counts[1]} | {counts[2]} | {counts[3]} of {len(control)} | "
                      f"{counts[4]} of {len(control)} | {'; '.join(moved) or 'none'} |")
         for a, b in effect:
