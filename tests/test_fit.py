@@ -195,8 +195,12 @@ def test_segmentation_settings_come_from_the_config():
     assert _segmentation_settings(default.segmentation).coverage_near_px == 4
     band = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": 8}))
     assert band.coverage_near_px == 8
-    with pytest.raises(ConfigError, match="data.segmentation: coverage_near_px must be >= 1, got 0"):
-        _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": 0}))
+    auto = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": "auto"}))
+    assert auto.coverage_near_px == "auto" and auto.band_steps(960, 1280) == 8
+    for bad in (0, 2.5, "wide"):
+        with pytest.raises(ConfigError, match=f"data.segmentation: coverage_near_px must be a whole number of steps "
+                                              f">= 1 or \"auto\", got {bad!r}"):
+            _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": bad}))
 
 
 def test_the_log_says_how_pixel_values_were_read():

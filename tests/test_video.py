@@ -723,6 +723,26 @@ def test_coverage_band_sets_how_much_of_the_blurred_ramp_counts():
         SegmentationSettings(coverage_near_px=0)
 
 
+def test_auto_band_counts_the_640_by_480_cameras_steps_in_this_cameras_pixels():
+    """``coverage_near_px="auto"``: ``round(4 sqrt(H W / (640 480)))`` steps, 4 at 640 x 480 (so
+    the concealed sets' runs are unchanged by it), 8 through twice the pixels; ``_segment`` counts
+    that band (the 100 x 200 disc: 1 step, the ramp read as short as with a fixed band of 1)."""
+    auto = SegmentationSettings(coverage_near_px="auto")
+    sizes = ((480, 640), (960, 1280), (720, 1280), (1080, 1920), (100, 200))
+    assert [auto.band_steps(h, w) for h, w in sizes] == [4, 8, 7, 10, 1]
+    assert SegmentationSettings(coverage_near_px=6).band_steps(960, 1280) == 6
+    frames, _ = _blurred_disc_frames()
+
+    def moments(band):
+        return _segment(frames, SegmentationSettings(albedo_passes=1, coverage_near_px=band))["coverage_moments"]
+
+    np.testing.assert_array_equal(moments("auto"), moments(1))
+    assert not np.allclose(moments("auto"), moments(4))
+    for bad in ("8", True, 2.5, "Auto"):
+        with pytest.raises(ValueError, match='coverage_near_px must be a whole number of steps >= 1 or "auto"'):
+            SegmentationSettings(coverage_near_px=bad)
+
+
 def test_motion_band_keeps_the_ramp_along_the_motion_only():
     """``coverage_band="motion"``: the band of ``coverage_near_px`` steps swept half the frame's
     travel along the motion. On the disc blurred by 10 px of travel (10 px a frame) the band of 4

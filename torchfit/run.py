@@ -67,6 +67,14 @@ class ConfigError(ValueError):
     """A configuration value that cannot be used; the message names the key."""
 
 
+def _band(value):
+    """A config's ``coverage_near_px``: ``"auto"`` as it is, a whole number as an int (a YAML
+    ``8`` or ``8.0``); anything else is passed on for the settings to reject by name."""
+    if isinstance(value, str) or isinstance(value, bool):
+        return value
+    return int(value) if float(value) == int(value) else value
+
+
 def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:
     """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px) as
     :class:`SegmentationSettings`; ``albedo_passes: null`` is one pass where discover compares the
@@ -76,7 +84,7 @@ def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
                                     albedo_passes=(1 if coverage else 0) if passes is None else int(passes),
-                                    **({} if band is None else {"coverage_near_px": int(band)}))
+                                    **({} if band is None else {"coverage_near_px": _band(band)}))
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 

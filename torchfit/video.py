@@ -70,6 +70,8 @@ TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 COVERAGE_BANDS = ("steps", "motion")
 SHADING_FITS = ("constant", "linear")
 _CACHE_VERSION = 6
+# coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
+BAND_REFERENCE_STEPS, BAND_REFERENCE_PIXELS = 4, 640 * 480
 
 
 @dataclass(frozen=True)
@@ -119,7 +121,11 @@ class SegmentationSettings:
             band keeps more background noise, which the clip to [0, 1] turns into mass. A band
             of 6 reads the blur nearly right but let discover name a wrong clock on a concealed
             ball, so 4 stays (experiments/discover/HISTORY.md, *Reading the exposure from the
-            blur*).
+            blur*). ``"auto"``: those 4 steps in a 640 x 480 camera's units, ``round(4 s)`` with
+            ``s = sqrt(H W / (640 480))`` (:meth:`band_steps`): a thrown object's blurred ramp
+            is as many more pixels wide as the camera has more pixels across the same view, and
+            through 1280 x 960 a band of 4 cut it (experiments/discover/HISTORY.md,
+            *Forty-first session*).
         coverage_band: ``"steps"``: the moments count the band of ``coverage_near_px`` steps;
             ``"motion"``: that band swept half the frame's travel either way along the motion
             (:func:`motion_band`; the travel is the mask centroid's, central differences over
@@ -150,7 +156,7 @@ class SegmentationSettings:
     chroma_weight: float = 0.5
     transfer: str = "auto"
     albedo_passes: int = 0
-    coverage_near_px: int = 4
+    coverage_near_px: int | str = 4
     coverage_band: str = "steps"
     coverage_clip: bool = True
     morph_radius: int = 1
@@ -179,13 +185,24 @@ class SegmentationSettings:
             raise ValueError(f"shading_fit must be one of {SHADING_FITS}, got {self.shading_fit!r}")
         if self.coverage_band not in COVERAGE_BANDS:
             raise ValueError(f"coverage_band must be one of {COVERAGE_BANDS}, got {self.coverage_band!r}")
-        if self.coverage_near_px < 1:
-            raise ValueError(f"coverage_near_px must be >= 1, got {self.coverage_near_px!r}")
+        if not (self.coverage_near_px == "auto" or (isinstance(self.coverage_near_px, int)
+                                                     and not isinstance(self.coverage_near_px, bool)
+                                                     and self.coverage_near_px >= 1)):
+            raise ValueError(f'coverage_near_px must be a whole number of steps >= 1 or "auto", '
+                             f"got {self.coverage_near_px!r}")
         if self.min_area < 1 or self.morph_radius < 0 or self.max_background_frames < 1:
             raise ValueError(
                 "min_area and max_background_frames must be >= 1 and morph_radius >= 0, got "
                 f"{self.min_area!r}, {self.max_background_frames!r}, {self.morph_radius!r}"
             )
+
+    def band_steps(self, height: int, width: int) -> int:
+        """The coverage band in 4-neighbour steps for frames of ``height`` x ``width`` pixels:
+        ``coverage_near_px`` itself, or for ``"auto"`` ``round(4 sqrt(H W / (640 480)))``, at
+        least 1 (4 at 640 x 480, 8 at 1280 x 960, 10 at 1920 x 1080)."""
+        if self.coverage_near_px != "auto":
+            return int(self.coverage_near_px)
+        return max(1, round(BAND_REFERENCE_STEPS * math.sqrt(height * width / BAND_REFERENCE_PIXELS)))
 
 
 @dataclass
@@ -925,9 +942,10 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
     velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(frames), 2))
     cover_moments = np.zeros((len(frames), 6))
+    steps = settings.band_steps(*frames.shape[1:3])
     for t in range(len(frames)):
         if masks[t].any():
-            near = motion_band(masks[t], settings.coverage_near_px, velocity[t])
+            near = motion_band(masks[t], steps, velocity[t])
             cover = (np.clip(covers[t], 0.0, 1.0) if settings.coverage_clip else covers[t]) * near
             if undistort is not None:
                 cover = cv2.remap(cover.astype(np.float32), *undistort, interpolation=cv2.INTER_LINEAR)

@@ -887,9 +887,10 @@ if __name__ == "__main__":
     ap.add_argument("--exposure", action="store_true",
                     help="compare the soft coverage with the silhouette averaged over the recording's exposure "
                          "(truth.json's render; results/concealed..._exposure/)")
-    ap.add_argument("--coverage-near-px", type=int, metavar="N",
-                    help="with --exposure: the soft coverage counted within N px of the mask instead of 4 "
-                         "(SegmentationSettings.coverage_near_px; results/concealed..._exposure_near<N>/)")
+    ap.add_argument("--coverage-near-px", type=lambda v: v if v == "auto" else int(v), metavar="N",
+                    help="with --exposure: the soft coverage counted within N px of the mask instead of 4, or "
+                         "auto: 4 in a 640 x 480 camera's units (SegmentationSettings.coverage_near_px; "
+                         "results/concealed..._exposure_near<N>/)")
     ap.add_argument("--unclipped", action="store_true",
                     help="with --exposure: the soft coverage's moments without its clip to [0, 1] "
                          "(SegmentationSettings.coverage_clip off; results/concealed..._exposure..._unclipped/)")
@@ -1048,7 +1049,8 @@ if __name__ == "__main__":
         ap.error(f"--baseline-starts needs at least one candidate, got {args.baseline_starts}")
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
-    if args.coverage_near_px is not None and not (args.exposure and args.coverage_near_px >= 1):
+    if args.coverage_near_px is not None and not (args.exposure and (args.coverage_near_px == "auto"
+                                                                     or args.coverage_near_px >= 1)):
         ap.error(f"--coverage-near-px needs --exposure (only the exposure reads the coverage) and a band of at "
                  f"least 1 px, got {args.coverage_near_px}")
     if args.fit_exposure and not args.exposure:

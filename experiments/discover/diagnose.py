@@ -909,7 +909,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     mid, averaged = _exact_moments(truth, shape, camera)
     mid, averaged = _raw(mid).numpy(), averaged.numpy()
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
-    cover = _coverage_within(kept, masks, (settings or SegmentationSettings()).coverage_near_px)
+    cover = _coverage_within(kept, masks, (settings or SegmentationSettings()).band_steps(*masks.shape[1:]))
     mask = raw_moments(masks)
     used = _whole(masks)
     used[[0, -1]] = False
@@ -1259,14 +1259,15 @@ def regions(folder: Path, settings=None, samples: int = 4) -> dict:
     mesh = RenderMesh.from_shape(shape, torch.float64)
     velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
     shares = {name: [] for name in REGIONS}  # per frame (cx, cy, area, mean error, mean |error|, independent)
+    steps = settings.band_steps(*masks.shape[1:])
     for t in np.flatnonzero(_whole(masks)):
         rows, cols = np.nonzero(masks[t])
-        pad = settings.coverage_near_px + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
+        pad = steps + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
         y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
         y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
         h, w = y1 - y0, x1 - x0
         exact = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, h, w, samples)
-        band = video.motion_band(masks[t], settings.coverage_near_px, velocity[t])[y0:y1, x0:x1]
+        band = video.motion_band(masks[t], steps, velocity[t])[y0:y1, x0:x1]
         cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
         error, area = cover - exact, exact.sum()
         v, u = np.mgrid[0:h, 0:w]
