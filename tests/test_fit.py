@@ -192,7 +192,8 @@ def test_segmentation_settings_come_from_the_config():
     assert passes.albedo_passes == 1
     with pytest.raises(ConfigError, match="data.segmentation: transfer must be one of"):
         _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "gamma"}))
-    assert _segmentation_settings(default.segmentation).coverage_near_px == 4
+    assert _segmentation_settings(default.segmentation).coverage_near_px == "auto"  # 4 steps at 640 x 480
+    assert _segmentation_settings(default.segmentation).band_steps(480, 640) == 4
     band = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": 8}))
     assert band.coverage_near_px == 8
     auto = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": "auto"}))

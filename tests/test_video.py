@@ -598,7 +598,8 @@ def test_soft_coverage_moments_are_the_blurred_frames_own():
     the mask's 0.5 contour is narrower along the motion (variance -23 %): the exposure's average
     moments are what the coverage shows, not the mask."""
     frames, covers = _blurred_disc_frames()
-    out = _segment(frames, SegmentationSettings(albedo_passes=1))
+    # the band of 4 steps: this 100 x 200 clip's blur is 10 px, as at 640 x 480 ("auto" would count 1)
+    out = _segment(frames, SegmentationSettings(albedo_passes=1, coverage_near_px=4))
     inner = slice(2, -2)  # the first and last frames' background median is the weakest
     exact = central_moments(torch.as_tensor(raw_moments(covers[inner])))
     soft = central_moments(torch.as_tensor(out["coverage_moments"][inner]))
@@ -631,8 +632,9 @@ def test_coverage_moments_are_taken_undistorted_through_a_lens():
     maps = source[..., 0].astype(np.float32), source[..., 1].astype(np.float32)
     imaged = np.stack([cv2.remap(f, *maps, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
                        for f in frames])
-    out = _segment(imaged, SegmentationSettings(albedo_passes=1), _undistort_maps(camera))
-    as_imaged = _segment(imaged, SegmentationSettings(albedo_passes=1))
+    settings = SegmentationSettings(albedo_passes=1, coverage_near_px=4)  # the blur of a 640 x 480 clip
+    out = _segment(imaged, settings, _undistort_maps(camera))
+    as_imaged = _segment(imaged, settings)
     inner = slice(2, -2)  # the first and last frames' background median is the weakest
     exact = central_moments(torch.as_tensor(raw_moments(covers[inner])))
     soft = central_moments(torch.as_tensor(out["coverage_moments"][inner]))
