@@ -68,11 +68,11 @@ class ConfigError(ValueError):
 
 
 def _band(value):
-    """A config's ``coverage_near_px``: ``"auto"`` as it is, a whole number as an int (a YAML
-    ``8`` or ``8.0``); anything else is passed on for the settings to reject by name."""
-    if isinstance(value, str) or isinstance(value, bool):
-        return value
-    return int(value) if float(value) == int(value) else value
+    """A config's ``coverage_near_px``: a whole number as an int (a YAML ``8`` or ``8.0``);
+    anything else (``"auto"``, or a value the settings reject by name) as it is."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and float(value).is_integer():
+        return int(value)
+    return value
 
 
 def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:

@@ -888,8 +888,8 @@ if __name__ == "__main__":
                     help="compare the soft coverage with the silhouette averaged over the recording's exposure "
                          "(truth.json's render; results/concealed..._exposure/)")
     ap.add_argument("--coverage-near-px", type=lambda v: v if v == "auto" else int(v), metavar="N",
-                    help="with --exposure: the soft coverage counted within N px of the mask instead of 4, or "
-                         "auto: 4 in a 640 x 480 camera's units (SegmentationSettings.coverage_near_px; "
+                    help="with --exposure: the soft coverage counted within N px of the mask instead of the "
+                         "default auto, 4 steps in a 640 x 480 camera's units (SegmentationSettings.coverage_near_px; "
                          "results/concealed..._exposure_near<N>/)")
     ap.add_argument("--unclipped", action="store_true",
                     help="with --exposure: the soft coverage's moments without its clip to [0, 1] "
