@@ -125,8 +125,8 @@ class SegmentationSettings:
             camera's units, ``round(4 s)`` with ``s = sqrt(H W / (640 480))``
             (:meth:`band_steps`): a thrown object's blurred ramp is as many more pixels wide as
             the camera has more pixels across the same view. Through 1280 x 960 a band of 4 cut
-            it; 8 named 61 of 75 hidden effects on five concealed sets against 57 at 640 x 480,
-            24 of 25 controls quiet (experiments/discover/HISTORY.md, *Forty-first session*,
+            it; 8 named 72 of 90 hidden effects on six concealed sets against 67 at 640 x 480,
+            29 of 30 controls quiet (experiments/discover/HISTORY.md, *Forty-first session*,
             *Forty-second session*). An int is a fixed band.
         coverage_band: ``"steps"``: the moments count the band of ``coverage_near_px`` steps;
             ``"motion"``: that band swept half the frame's travel either way along the motion
