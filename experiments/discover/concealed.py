@@ -1049,10 +1049,13 @@ if __name__ == "__main__":
         ap.error(f"--baseline-starts needs at least one candidate, got {args.baseline_starts}")
     if args.fresh < 0:
         ap.error(f"--fresh needs a set number K >= 1, got {args.fresh}")
-    if args.coverage_near_px is not None and not (args.exposure and (args.coverage_near_px == "auto"
-                                                                     or args.coverage_near_px >= 1)):
-        ap.error(f"--coverage-near-px needs --exposure (only the exposure reads the coverage) and a band of at "
-                 f"least 1 px, got {args.coverage_near_px}")
+    if args.coverage_near_px is not None:
+        if not args.exposure:
+            ap.error("--coverage-near-px needs --exposure (only the exposure reads the coverage)")
+        try:  # the settings' own check of the band
+            SegmentationSettings(coverage_near_px=args.coverage_near_px)
+        except ValueError as err:
+            ap.error(f"--coverage-near-px: {err}")
     if args.fit_exposure and not args.exposure:
         ap.error("--fit-exposure needs --exposure (the fraction it starts from)")
     if (args.fit_point_spread or args.point_spread_prior) and not args.exposure:
