@@ -788,6 +788,23 @@ def test_radial_fit_recovers_a_lens_left_over():
     null = diag.radial_fit(seen(0.0), true, K)
     assert abs(null["residual_k1"]) < 3 * null["residual_k1_std"]
 
+def test_frame_noise_reads_the_noise_not_the_trend():
+    """``diagnose.py end-frames``' frame-to-frame noise: on a channel that is a smooth trend plus
+    independent noise of 0.3 it reads 0.3 within 10 %, the trend (a hundred times the noise over
+    the clip) cancelling in the first differences but for its slope's change from frame to frame,
+    and a few jumps do not move it."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    rng = np.random.default_rng(3)
+    t = np.linspace(-1.0, 1.0, 400)
+    noise = rng.normal(0.0, 0.3, t.shape)
+    assert diag._frame_noise(noise) == pytest.approx(0.3, rel=0.1)
+    jumped = 15.0 * t + 3.0 * t**2 + noise
+    jumped[::50] += 5.0
+    assert diag._frame_noise(jumped) == pytest.approx(0.3, rel=0.1)
+    assert np.ptp(15.0 * t + 3.0 * t**2) >= 99 * 0.3  # the trend spans a hundred times the noise
+
+
 def test_mixed_moments_take_each_part_from_its_source():
     """``diagnose.py exact-coverage``'s mix: each of area, centroid and shape (second moments per
     unit area) comes from the source named, and an empty frame stays empty."""

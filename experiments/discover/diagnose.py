@@ -35,6 +35,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
     python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
     python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
+    python experiments/discover/diagnose.py end-frames SET [SETTING=V...]  # the coverage's error on a clip's first and last frames, the default's segmentation and each SETTING=V's, ~6 s a recording each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -1231,6 +1232,60 @@ def _setting_value(text: str):
         return text
 
 
+END_FRAMES = 5  # end-frames: the frames counted at each end of a clip
+
+
+def _frame_noise(values: np.ndarray) -> float:
+    """A channel's frame-to-frame noise: the robust spread of its (T,) first differences over sqrt(2)."""
+    step = np.diff(values)
+    return float(1.4826 * np.nanmedian(np.abs(step - np.nanmedian(step))) / math.sqrt(2.0))
+
+
+def end_frames(folder: Path, variants: list[dict]) -> dict:
+    """Does the coverage err more on a clip's first and last frames? On every recording of the set
+    ``folder`` without a lens, each channel's error (:data:`torchfit.residuals.CHANNELS`) of the
+    soft coverage against the true silhouette's exact exposure average (:func:`_exact_moments`),
+    about its median over the frames, squared in units of the default segmentation's
+    frame-to-frame noise (:func:`_frame_noise`; the default: the albedo pass), summed over the
+    channels. Per segmentation (the default, then each of ``variants``, setting changes on top of
+    it): the median over the recordings of that sum at frames 0..4, the middle frames' median and
+    the last five frames, and each channel's frame-to-frame noise over the default's (median over
+    the recordings). ``speed``: the exact centroid's, px per frame, the same positions."""
+    from torchfit.losses import central_moments
+    from torchfit.residuals import CHANNELS, channel_values
+
+    k = END_FRAMES
+    settings = [{"albedo_passes": 1}] + [{"albedo_passes": 1} | v for v in variants]
+    names = [f.name for f in sorted(folder.iterdir()) if (f / "truth.json").exists() and not f.name.startswith("lens")]
+    errors = [[] for _ in settings]  # per segmentation, per recording: (C, T) errors
+    speeds = []
+    for name in names:
+        truth, shape, camera = recording_parts(folder / name)
+        mid, averaged = _exact_moments(truth, shape, camera)
+        exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
+        speeds.append(np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1))
+        for out, changes in zip(errors, settings):
+            observation, _, _ = load_problem(folder / name, shape, camera, False, SegmentationSettings(**changes))
+            seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
+            values = channel_values(seen, exact)
+            out.append(np.stack([np.asarray(values[c], np.float64) for c in CHANNELS]))
+        print(folder.name, name, flush=True)
+
+    def ends(series: np.ndarray) -> list[float]:
+        return [*series[:k], float(np.nanmedian(series[k:-k])), *series[-k:]]
+
+    result = {"recordings": names, "positions": [f"{i}" for i in range(k)] + ["middle"] + [f"{i}" for i in range(-k, 0)],
+              "speed_px": [float(v) for v in np.median([ends(s) for s in speeds], 0)], "segmentations": []}
+    for changes, out in zip(settings, errors):
+        scale = [np.array([_frame_noise(e) for e in ref]) for ref in errors[0]]  # (C,) each recording
+        summed = [np.nansum(((e - np.nanmedian(e, 1, keepdims=True)) / s[:, None]) ** 2, 0) for e, s in zip(out, scale)]
+        noise = np.median([np.array([_frame_noise(e) for e in own]) / s for own, s in zip(out, scale)], 0)
+        result["segmentations"].append({"settings": changes, "error": [float(v) for v in np.median([ends(z) for z in summed], 0)],
+                                        "noise_over_default": dict(zip(CHANNELS, (float(v) for v in noise)))})
+        print(changes, " ".join(f"{v:.1f}" for v in result["segmentations"][-1]["error"]), flush=True)
+    return result
+
+
 REGION_EDGES = (0.02, 0.98)  # regions: the exact coverage's bins (np.digitize) ...
 REGIONS = {"interior": 2, "ramp": 1, "outside": 0}  # ... from 0.98 on, between, below 0.02
 
@@ -1446,6 +1501,16 @@ def main(argv: list[str]) -> None:
         result = (json.loads(file.read_text()) if file.exists() else {}) | sets(argv[1:])
         print(json.dumps({name: rows["mean"] for name, rows in result.items()}, indent=1))
         file.write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["end-frames"] and len(argv) > 1:
+        changes = [_setting_args([a]) for a in argv[2:]]
+        if any(not c for c in changes):
+            sys.exit(f"end-frames: SET then SETTING=V..., got {' '.join(argv[1:])}")
+        for c in changes:
+            SegmentationSettings(**c)  # a bad setting stops here, before the recordings are read
+        result = end_frames(HERE / argv[1], changes)
+        label = "".join(_setting_label(c) for c in changes)
+        (HERE / "results" / f"diagnose_end-frames_{argv[1]}{label}.json").write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["lens-masks"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_lens_masks.json"
