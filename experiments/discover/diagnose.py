@@ -35,7 +35,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
     python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
     python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
-    python experiments/discover/diagnose.py end-frames SET [SETTING=V...]  # the coverage's error on a clip's first and last frames, the default's segmentation and each SETTING=V's, ~6 s a recording each
+    python experiments/discover/diagnose.py end-frames SET [SETTING=V...]  # the coverage's error on a clip's first and last frames, the default's segmentation and each SETTING=V's, ~15 s a recording each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
 Each prints its figures and writes them to results/diagnose_<command>_<set>_<name>.json
@@ -1276,8 +1276,8 @@ def end_frames(folder: Path, variants: list[dict]) -> dict:
 
     result = {"recordings": names, "positions": [f"{i}" for i in range(k)] + ["middle"] + [f"{i}" for i in range(-k, 0)],
               "speed_px": [float(v) for v in np.median([ends(s) for s in speeds], 0)], "segmentations": []}
+    scale = [np.array([_frame_noise(e) for e in ref]) for ref in errors[0]]  # the default's (C,), each recording
     for changes, out in zip(settings, errors):
-        scale = [np.array([_frame_noise(e) for e in ref]) for ref in errors[0]]  # (C,) each recording
         summed = [np.nansum(((e - np.nanmedian(e, 1, keepdims=True)) / s[:, None]) ** 2, 0) for e, s in zip(out, scale)]
         noise = np.median([np.array([_frame_noise(e) for e in own]) / s for own, s in zip(out, scale)], 0)
         result["segmentations"].append({"settings": changes, "error": [float(v) for v in np.median([ends(z) for z in summed], 0)],
