@@ -64,7 +64,7 @@ import torchfit.discover_video as dv
 from torchfit.rotation import quat_to_matrix, rotation_angle
 from torchfit.search import Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
-from torchfit.video import SegmentationSettings, mask_velocity
+from torchfit.video import SegmentationSettings, load_observation, mask_velocity
 
 HERE = Path(__file__).resolve().parent
 
@@ -1265,7 +1265,8 @@ def end_frames(folder: Path, variants: list[dict]) -> dict:
         exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
         speeds.append(np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1))
         for out, changes in zip(errors, settings):
-            observation, _, _ = load_problem(folder / name, shape, camera, False, SegmentationSettings(**changes))
+            observation = load_observation(str(folder / name / "video.mp4"), camera=camera,
+                                           settings=SegmentationSettings(**changes))
             seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
             values = channel_values(seen, exact)
             out.append(np.stack([np.asarray(values[c], np.float64) for c in CHANNELS]))
