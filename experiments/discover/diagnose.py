@@ -1507,8 +1507,13 @@ def main(argv: list[str]) -> None:
         changes = [_setting_args([a]) for a in argv[2:]]
         if any(not c for c in changes):
             sys.exit(f"end-frames: SET then SETTING=V..., got {' '.join(argv[1:])}")
-        for c in changes:
-            SegmentationSettings(**c)  # a bad setting stops here, before the recordings are read
+        if not (HERE / argv[1]).is_dir():
+            sys.exit(f"end-frames: no set of recordings {HERE / argv[1]}: make it with make_concealed.py")
+        for c in changes:  # a bad setting stops here, before the recordings are read
+            try:
+                SegmentationSettings(**c)
+            except (TypeError, ValueError) as err:
+                sys.exit(f"end-frames: {' '.join(f'{k}={v}' for k, v in c.items())}: {err}")
         result = end_frames(HERE / argv[1], changes)
         label = "".join(_setting_label(c) for c in changes)
         (HERE / "results" / f"diagnose_end-frames_{argv[1]}{label}.json").write_text(json.dumps(result, indent=1))
