@@ -789,18 +789,22 @@ def test_radial_fit_recovers_a_lens_left_over():
     assert abs(null["residual_k1"]) < 3 * null["residual_k1_std"]
 
 def test_frame_noise_reads_the_noise_not_the_trend():
-    """``diagnose.py end-frames``' frame-to-frame noise: on a channel that is a smooth trend plus
-    independent noise of 0.3 it reads 0.3 within 10 %, the trend (a hundred times the noise over
-    the clip) cancelling in the first differences but for its slope's change from frame to frame,
-    and a few jumps do not move it."""
+    """``diagnose.py end-frames``' noise unit is discover's floor: on a channel that is a smooth
+    trend (a hundred times the noise over the clip) plus AR(1) noise of spread 0.3 with discover's
+    lag-one correlation, a few jumps and a few failed (NaN) frames, it reads 0.3 within 10 %."""
     sys.path.insert(0, str(CONCEALED.parent))
     diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    from torchfit.discover_video import FRAME_CORRELATION as rho
+
     rng = np.random.default_rng(3)
-    t = np.linspace(-1.0, 1.0, 400)
-    noise = rng.normal(0.0, 0.3, t.shape)
+    t = np.linspace(-1.0, 1.0, 2000)
+    noise = np.zeros_like(t)
+    for i in range(1, len(t)):
+        noise[i] = rho * noise[i - 1] + rng.normal(0.0, 0.3 * np.sqrt(1 - rho**2))
     assert diag._frame_noise(noise) == pytest.approx(0.3, rel=0.1)
     jumped = 15.0 * t + 3.0 * t**2 + noise
-    jumped[::50] += 5.0
+    jumped[::250] += 5.0
+    jumped[7::400] = np.nan
     assert diag._frame_noise(jumped) == pytest.approx(0.3, rel=0.1)
     assert np.ptp(15.0 * t + 3.0 * t**2) >= 99 * 0.3  # the trend spans a hundred times the noise
 

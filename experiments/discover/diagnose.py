@@ -1236,20 +1236,23 @@ END_FRAMES = 5  # end-frames: the frames counted at each end of a clip
 
 
 def _frame_noise(values: np.ndarray) -> float:
-    """A channel's frame-to-frame noise: the robust spread of its (T,) first differences over sqrt(2)."""
-    step = np.diff(values)
-    return float(1.4826 * np.nanmedian(np.abs(step - np.nanmedian(step))) / math.sqrt(2.0))
+    """A channel's noise floor as discover measures it (:func:`torchfit.residuals.noise_floor`,
+    second differences, lag-one correlation :data:`torchfit.discover_video.FRAME_CORRELATION`),
+    on the finite frames of (T,) ``values``."""
+    from torchfit.residuals import noise_floor
+
+    return noise_floor(values[np.isfinite(values)], dv.FRAME_CORRELATION)
 
 
 def end_frames(folder: Path, variants: list[dict]) -> dict:
     """Does the coverage err more on a clip's first and last frames? On every recording of the set
     ``folder`` without a lens, each channel's error (:data:`torchfit.residuals.CHANNELS`) of the
     soft coverage against the true silhouette's exact exposure average (:func:`_exact_moments`),
-    about its median over the frames, squared in units of the default segmentation's
-    frame-to-frame noise (:func:`_frame_noise`; the default: the albedo pass), summed over the
+    about its median over the frames, squared in units of the default segmentation's noise
+    floor (:func:`_frame_noise`; the default: the albedo pass), summed over the
     channels. Per segmentation (the default, then each of ``variants``, setting changes on top of
     it): the median over the recordings of that sum at frames 0..4, the middle frames' median and
-    the last five frames, and each channel's frame-to-frame noise over the default's (median over
+    the last five frames, and each channel's noise floor over the default's (median over
     the recordings). ``speed``: the exact centroid's, px per frame, the same positions."""
     from torchfit.losses import central_moments
     from torchfit.residuals import CHANNELS, channel_values
