@@ -315,6 +315,29 @@ def test_concealed_verdict_is_right_only_when_exactly_the_hidden_effects_are_nam
     assert "Right verdict on 1 of 3 effect cases; controls quiet 1 of 2" in conc.score_line(counts)
 
 
+def test_table_rebuild_keeps_a_stored_row_whose_recording_is_gone(tmp_path):
+    """A set partly made again: a centre-of-mass run whose recording is gone keeps the row
+    summary.json holds for it (its offset was compared modulo the shape when it was there); every
+    other row is read again from its discover.json, and without a stored row the rebuild stops,
+    naming the recording."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    conc = _load("concealed", CONCEALED.parent / "concealed.py")
+    out, recordings = tmp_path / "out", tmp_path / "recordings"
+    recordings.mkdir()
+    com = {"com_offset": {"offset": [0.0, 0.0, 0.01]}}
+    for name, verdict, truth in (("com_x", ["com_offset"], com), ("control_x", [], {})):
+        (out / name).mkdir(parents=True)
+        (out / name / "discover.json").write_text(json.dumps(_content(verdict, truth)))
+    with pytest.raises(SystemExit, match="com_x is missing"):
+        conc.rebuild(out, recordings)
+    stored = conc.row("com_x", _content(["com_offset"], {})) | {"marker": "stored"}  # a whole row, marked
+    (out / "summary.json").write_text(json.dumps([stored]))
+    conc.rebuild(out, recordings)
+    rows = {r["recording"]: r for r in json.loads((out / "summary.json").read_text())}
+    assert rows["com_x"] == stored
+    assert rows["control_x"]["right"] and "marker" not in rows["control_x"]
+
+
 def test_below_the_exact_mask_limit_only_when_missed_and_every_limit_exceeds_the_truth():
     """A recording counts as below its exact-mask detection limit only when the exact masks miss
     it and each parameter's limit there is larger than its true departure from the null."""

@@ -719,8 +719,23 @@ def _fmt(value) -> str:
 
 def rebuild(out: Path = OUT, recordings: Path = RECORDINGS) -> str:
     """summary.json and table.md from every discover.json under ``out`` (no fitting: rows of other
-    runs and earlier ones are read back the same way); returns the table."""
-    rows = [row(f.parent.name, json.loads(f.read_text()), recordings) for f in sorted(out.glob("*/discover.json"))]
+    runs and earlier ones are read back the same way); returns the table. A row that needs its
+    recording (a centre-of-mass offset, compared modulo the shape's symmetries) where that
+    recording is no longer in ``recordings`` (a set partly made again) keeps the row summary.json
+    already holds for it; without one it stops, naming the recording."""
+    stored_path = out / "summary.json"
+    stored = {r["recording"]: r for r in json.loads(stored_path.read_text())} if stored_path.exists() else {}
+    rows = []
+    for f in sorted(out.glob("*/discover.json")):
+        name, content = f.parent.name, json.loads(f.read_text())
+        if "com_offset" in content.get("truth_effects", {}) and not (recordings / name / "truth.json").exists():
+            if name not in stored:
+                sys.exit(f"{recordings / name} is missing and {stored_path} holds no row for it: "
+                         "make the recording again (make_concealed.py) to rebuild the table")
+            print(f"{recordings / name} is missing: its row is the one {stored_path} holds", file=sys.stderr)
+            rows.append(stored[name])
+        else:
+            rows.append(row(name, content, recordings))
     text = table(rows) + "\n\n" + score_line(score(rows))
     (out / "summary.json").write_text(json.dumps(rows, indent=1))
     (out / "table.md").write_text(text + "\n")
