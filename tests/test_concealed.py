@@ -184,6 +184,32 @@ def test_scaled_set_draws_the_same_throws_through_more_pixels(mods):
     assert mc.fresh_folder(7, scale=2).name == "recordings_fresh7_x2" and mc.fresh_folder(0, scale=1).name == "recordings"
 
 
+def test_fps_scaled_set_films_the_same_throws_at_twice_the_frame_rate(mods):
+    """--fps-scale N: the same recordings at N times the frame rate over the same seconds, so every
+    N-th frame is one of the set's, each exposed for the same fraction of its interval; a wrong
+    clock keeps its ratio; the throw is the set's (pinned, where its margin checked at more instants
+    would draw another: fresh-6 drag_box), and it stays in the image at every instant."""
+    mr, mc = mods
+    for spec, _ in mc.concealed_specs(6):
+        if spec.name not in ("drag_box", "time_box", "magnus_ball"):  # the pinned one, a clock, a spin
+            continue
+        fast = mc.fps_scaled_spec(spec, 2)
+        assert fast.fps == 2 * spec.fps and fast.n_frames == 2 * spec.n_frames - 1
+        assert (fast.n_frames - 1) / fast.fps == pytest.approx((spec.n_frames - 1) / spec.fps)
+        assert fast.exposure == spec.exposure and fast.blur_subframes == spec.blur_subframes
+        if spec.fps_stated is not None:
+            assert fast.fps / fast.fps_stated == pytest.approx(spec.fps / spec.fps_stated)
+        mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+        ic, _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
+        ic2, _ = mr.resolve_ic(fast, mr.Scene(fast, mesh), mesh)  # raises if it left the image
+        assert all(np.allclose(a, b, rtol=0, atol=1e-15) for a, b in zip(ic, ic2)), spec.name
+        unpinned = fast.replace(position=None, orientation_wxyz=None, velocity=None, angular_velocity=None,
+                                margin_px=spec.margin_px)
+        assert unpinned.replace(fps=spec.fps, n_frames=spec.n_frames, fps_stated=spec.fps_stated) == spec
+    assert mc.fps_scaled_spec(spec, 1) is spec
+    assert mc.fresh_folder(6, fps_scale=2).name == "recordings_fresh6_fps2"
+
+
 @pytest.mark.parametrize("codec, full_colour", [("h264_444", True), ("h264", False)])
 def test_h264_444_keeps_colour_at_full_resolution(mods, tmp_path, codec, full_colour):
     """A one-pixel red column on grey, lossless (crf 0): yuv444p gives it back, yuv420p halves

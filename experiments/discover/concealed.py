@@ -820,10 +820,10 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         search_final: int | None = None, scale: int = 1) -> None:
+         search_final: int | None = None, scale: int = 1, fps_scale: int = 1) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
-    recordings = fresh_folder(fresh, sharp, crf, transfer, scale)
+    recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
     settings = (segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
                                     coverage_clip, fit_exposure, point_spread, exposure_taps,
@@ -850,7 +850,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
         sys.exit(f"no recordings in {recordings}: run python experiments/discover/make_concealed.py"
                  + (f" --fresh {fresh}" if fresh else "") + (" --shutter" if shutter else "")
                  + (" --sharp" if sharp else "") + (f" --crf {crf}" if crf is not None else "")
-                 + (f" --transfer {transfer}" if transfer else "") + (f" --scale {scale}" if scale != 1 else ""))
+                 + (f" --transfer {transfer}" if transfer else "") + (f" --scale {scale}" if scale != 1 else "")
+                 + (f" --fps-scale {fps_scale}" if fps_scale != 1 else ""))
     else:
         folders = [recordings / n for n in names] if names else sorted(p for p in recordings.iterdir() if p.is_dir())
     for folder in folders:
@@ -887,6 +888,9 @@ if __name__ == "__main__":
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="the set filmed with N times the pixels along each side (make_concealed.py --scale N; "
                          "results/..._x<N>/)")
+    ap.add_argument("--fps-scale", type=int, default=1, metavar="N",
+                    help="the set filmed at N times the frame rate (make_concealed.py --fps-scale N; "
+                         "results/..._fps<N>/)")
     ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
                     help="the set stored through this camera curve (make_concealed.py --transfer T), segmented "
                          "with SegmentationSettings.transfer T (results/..._<T>/)")
@@ -1099,6 +1103,9 @@ if __name__ == "__main__":
     if args.scale < 1 or (args.scale != 1 and (args.shutter or args.shipped)):
         ap.error(f"--scale is a concealed set through a camera of N >= 1 times the pixels (not with --shutter or "
                  f"--shipped), got {args.scale}")
+    if args.fps_scale < 1 or (args.fps_scale != 1 and (args.shutter or args.shipped)):
+        ap.error(f"--fps-scale is a concealed set filmed at N >= 1 times the frame rate (not with --shutter or "
+                 f"--shipped), got {args.fps_scale}")
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")
     if (args.transfer and (args.shutter or args.shipped or args.true_masks)) or (args.read_as and not args.transfer):
@@ -1113,4 +1120,5 @@ if __name__ == "__main__":
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
-         declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale)
+         declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
+         fps_scale=args.fps_scale)

@@ -21,7 +21,9 @@ recordings_shutter/: ``shutter_specs``), ``--sharp`` (the set without motion blu
 at its time, in recordings[_fresh<K>]_sharp/; everything else as in the set), ``--crf C`` (the set
 encoded at H.264 quality C instead of 14, in recordings[_fresh<K>]_crf<C>/: how the compression
 moves the verdicts), ``--scale N`` (the set through a camera with N times the pixels along each
-side, the same lens and throws, in recordings[_fresh<K>]_x<N>/).
+side, the same lens and throws, in recordings[_fresh<K>]_x<N>/), ``--fps-scale N`` (the same
+throws filmed at N times the frame rate, each frame exposed for the same fraction of its interval,
+in recordings[_fresh<K>]_fps<N>/).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -189,6 +191,25 @@ def scaled_spec(spec: mr.RecordingSpec, scale: int) -> mr.RecordingSpec:
     return spec.replace(width=spec.width * scale, height=spec.height * scale, margin_px=spec.margin_px * scale)
 
 
+def fps_scaled_spec(spec: mr.RecordingSpec, factor: int) -> mr.RecordingSpec:
+    """The same recording filmed at ``factor`` times the frame rate: the same flight over the same
+    seconds, ``factor - 1`` frames between each two of the original (so its frames are every
+    ``factor``-th of these), each exposed for the same fraction of its now shorter interval, as a
+    camera with a fixed shutter angle does; a wrong clock is stated at ``factor`` times its rate.
+    The throw is the set's, drawn at the set's frame rate and pinned (``position`` ...
+    ``angular_velocity``): the frames in between are only asked to stay in the image
+    (``margin_px`` 0), since the set's margin, checked at more instants, would turn some throws
+    away and draw others."""
+    if factor == 1:
+        return spec
+    mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+    (p, q, v, w), _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
+    return spec.replace(fps=spec.fps * factor, n_frames=factor * (spec.n_frames - 1) + 1,
+                        fps_stated=None if spec.fps_stated is None else spec.fps_stated * factor,
+                        position=tuple(map(float, p)), orientation_wxyz=tuple(map(float, q)),
+                        velocity=tuple(map(float, v)), angular_velocity=tuple(map(float, w)), margin_px=0)
+
+
 def twin_spec(spec: mr.RecordingSpec) -> mr.RecordingSpec:
     """The same recording without its hidden effect."""
     return spec.replace(fluid=False, fluid_sphere=False, fluidcoef=None, hidden_weight=None,
@@ -254,6 +275,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="a camera with N times the pixels along each side (the same lens and field of view, "
                          "the same throws), in recordings[_fresh<K>]_x<N>/")
+    ap.add_argument("--fps-scale", type=int, default=1, metavar="N",
+                    help="the same throws filmed at N times the frame rate (the same seconds, the exposure the "
+                         "same fraction of each frame's interval), in recordings[_fresh<K>]_fps<N>/")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -267,8 +291,10 @@ def main(argv=None) -> int:
         raise SystemExit(f"--crf needs an H.264 quality 0-51 (not with --shutter or --sharp), got {args.crf}")
     if args.scale < 1 or (args.scale != 1 and args.shutter):
         raise SystemExit(f"--scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.scale}")
-    specs = [(scaled_spec(s, args.scale), what) for s, what in (shutter_specs() if args.shutter
-                                                                  else concealed_specs(args.fresh))]
+    if args.fps_scale < 1 or (args.fps_scale != 1 and args.shutter):
+        raise SystemExit(f"--fps-scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.fps_scale}")
+    specs = [(fps_scaled_spec(scaled_spec(s, args.scale), args.fps_scale), what)
+             for s, what in (shutter_specs() if args.shutter else concealed_specs(args.fresh))]
     if args.crf is not None:
         specs = [(s.replace(crf=args.crf), what) for s, what in specs]
     if args.sharp:
@@ -287,7 +313,7 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
-    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer, args.scale))
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer, args.scale, args.fps_scale))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)
