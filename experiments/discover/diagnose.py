@@ -35,6 +35,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
     python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
     python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
+    python experiments/discover/diagnose.py frame-correlation SET [SET...]  # the segmentation error's lag-one correlation on each set's controls, ~30 s a recording
     python experiments/discover/diagnose.py end-frames SET [SETTING=V...]  # the coverage's error on a clip's first and last frames, the default's segmentation and each SETTING=V's, ~15 s a recording each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
@@ -1244,6 +1245,60 @@ def _frame_noise(values: np.ndarray) -> float:
     return noise_floor(values[np.isfinite(values)], dv.FRAME_CORRELATION)
 
 
+def _coverage_errors(folder: Path, settings: list[dict]) -> tuple[list[np.ndarray], np.ndarray]:
+    """The recording ``folder``'s soft coverage against the true silhouette's exact exposure
+    average (:func:`_exact_moments`), per segmentation (``settings``, each a
+    :class:`SegmentationSettings`' changes): its (C, T) channel errors
+    (:data:`torchfit.residuals.CHANNELS`; ``shape`` and ``orientation`` along the seen outline's
+    long axis, as :func:`torchfit.residuals.channel_values` takes it without one). Also
+    the exact centroid's (T,) speed, px per frame."""
+    from torchfit.losses import central_moments
+    from torchfit.residuals import CHANNELS, channel_values
+
+    truth, shape, camera = recording_parts(folder)
+    mid, averaged = _exact_moments(truth, shape, camera)
+    exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
+    out = []
+    for changes in settings:
+        observation = load_observation(str(folder / "video.mp4"), camera=camera, settings=SegmentationSettings(**changes))
+        seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
+        values = channel_values(seen, exact)
+        out.append(np.stack([np.asarray(values[c], np.float64) for c in CHANNELS]))
+    return out, np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)
+
+
+def _lag_one(values: np.ndarray) -> float:
+    """The lag-one correlation of the noise on a (T,) channel, read from its first differences so
+    that a smooth trend does not count: for AR(1) noise with correlation r the differences have a
+    lag-one correlation of -(1 - r) / 2, so r = 1 + 2 x that. Over the finite frames, the
+    differences about their median and clipped at 6 robust spreads (a failed frame's jump)."""
+    step = np.diff(values[np.isfinite(values)])
+    step = step - np.median(step)
+    limit = 6.0 * 1.4826 * np.median(np.abs(step))
+    step = np.clip(step, -limit, limit)
+    return float(1.0 + 2.0 * (step[:-1] * step[1:]).sum() / (step * step).sum())
+
+
+def frame_correlation(folders: list[Path]) -> dict:
+    """How correlated the segmentation's error is from one frame to the next, the number discover's
+    noise model holds at :data:`torchfit.discover_video.FRAME_CORRELATION`: on each set's controls
+    (nothing hidden, no lens), the default segmentation's (albedo pass) coverage against the exact
+    exposure average, per channel :func:`_lag_one`; per set the median over its controls."""
+    from torchfit.residuals import CHANNELS
+
+    result = {}
+    for folder in folders:
+        rows = {}
+        for name in sorted(f.name for f in folder.iterdir() if f.name.startswith("control") and (f / "truth.json").exists()):
+            (errors,), _ = _coverage_errors(folder / name, [{"albedo_passes": 1}])
+            rows[name] = dict(zip(CHANNELS, (_lag_one(e) for e in errors)))
+            print(folder.name, name, " ".join(f"{c} {v:+.2f}" for c, v in rows[name].items()), flush=True)
+        result[folder.name] = {"recordings": rows,
+                               "median": {c: float(np.median([r[c] for r in rows.values()])) for c in CHANNELS}}
+        print(folder.name, "median", " ".join(f"{c} {v:+.2f}" for c, v in result[folder.name]["median"].items()), flush=True)
+    return result
+
+
 def end_frames(folder: Path, variants: list[dict]) -> dict:
     """Does the coverage err more on a clip's first and last frames? On every recording of the set
     ``folder`` without a lens, each channel's error (:data:`torchfit.residuals.CHANNELS`) of the
@@ -1254,8 +1309,7 @@ def end_frames(folder: Path, variants: list[dict]) -> dict:
     it): the median over the recordings of that sum at frames 0..4, the middle frames' median and
     the last five frames, and each channel's noise floor over the default's (median over
     the recordings). ``speed``: the exact centroid's, px per frame, the same positions."""
-    from torchfit.losses import central_moments
-    from torchfit.residuals import CHANNELS, channel_values
+    from torchfit.residuals import CHANNELS
 
     k = END_FRAMES
     settings = [{"albedo_passes": 1}] + [{"albedo_passes": 1} | v for v in variants]
@@ -1263,16 +1317,10 @@ def end_frames(folder: Path, variants: list[dict]) -> dict:
     errors = [[] for _ in settings]  # per segmentation, per recording: (C, T) errors
     speeds = []
     for name in names:
-        truth, shape, camera = recording_parts(folder / name)
-        mid, averaged = _exact_moments(truth, shape, camera)
-        exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
-        speeds.append(np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1))
-        for out, changes in zip(errors, settings):
-            observation = load_observation(str(folder / name / "video.mp4"), camera=camera,
-                                           settings=SegmentationSettings(**changes))
-            seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
-            values = channel_values(seen, exact)
-            out.append(np.stack([np.asarray(values[c], np.float64) for c in CHANNELS]))
+        found, speed = _coverage_errors(folder / name, settings)
+        speeds.append(speed)
+        for out, one in zip(errors, found):
+            out.append(one)
         print(folder.name, name, flush=True)
 
     def ends(series: np.ndarray) -> list[float]:
@@ -1520,6 +1568,13 @@ def main(argv: list[str]) -> None:
         result = end_frames(HERE / argv[1], changes)
         label = "".join(_setting_label(c) for c in changes)
         (HERE / "results" / f"diagnose_end-frames_{argv[1]}{label}.json").write_text(json.dumps(result, indent=1))
+        return
+    if argv[:1] == ["frame-correlation"] and len(argv) > 1:
+        missing = [name for name in argv[1:] if not (HERE / name).is_dir()]
+        if missing:
+            sys.exit(f"frame-correlation: no set of recordings {HERE / missing[0]}: make it with make_concealed.py")
+        result = frame_correlation([HERE / name for name in argv[1:]])
+        (HERE / "results" / f"diagnose_frame-correlation_{'_'.join(argv[1:])}.json").write_text(json.dumps(result, indent=1))
         return
     if argv[:1] == ["lens-masks"] and len(argv) > 2:
         file = HERE / "results" / "diagnose_lens_masks.json"
