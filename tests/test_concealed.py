@@ -488,6 +488,15 @@ def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
     assert table[2] == "| named right, held-out error halved | 1 | 1 | 1 of 1 | 0 of 1 | 0 |"  # 2 px -> 1 px
     assert table[3] == "| named right, not halved | 0 | 0 | 0 of 0 | 0 of 0 | 0 |"
     assert table[4] == "| effect not named right | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
+    # the baselines' fitted exposure: quartiles over the runs that fitted one, and those at its bound
+    assert standing.exposure_line(by_set) == "No run fitted the exposure."
+    for value, (label, name) in zip((0.5, 0.6, 1.0), (("first", "drag_a"), ("first", "control_x"), ("fresh 1", "drag_a"))):
+        content = _content([], {})
+        content["exposure_fitted"] = [{"value": value, "std": 0.01}, {"value": 0.2, "std": 0.01}]  # baseline's first
+        by_set[label][name] = conc.row(name, content)
+    assert standing.exposure_line(by_set) == (
+        "The baselines' fitted exposure (of the frame interval; the recordings' 0.5), 3 runs: median 0.600, "
+        "quartiles 0.550–0.800, range 0.500–1.000; at its bound (0.99 or more) on 1: fresh 1 drag_a.")
     assert table[5] == "| control | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
     # two variants of the same set side by side: a drag below its limit (0.12 of 0.3) named where
     # the other's limit is 0.1, a control quiet in both

@@ -18,7 +18,10 @@ From the stored runs of one variant (no fitting), over the sets asked for:
    one that flatters the data misses much above it;
 5. where the report located a miss (``concealed.flagged``): the baseline's fit to all frames, its
    predictions of the held-out parts, and the final model's, by how each recording ended;
-6. with ``--beside OTHER``, another variant's runs of the same sets side by side: right names
+6. the exposure each baseline fitted (a nuisance; the recordings' own is half the frame
+   interval): its median, quartiles and range, and the runs where it reached its bound, the whole
+   interval (on runs that fit one);
+7. with ``--beside OTHER``, another variant's runs of the same sets side by side: right names
    and quiet controls of each, the recordings whose outcome differs, and by how much the other's
    detection limits are lower.
 
@@ -40,6 +43,8 @@ import math
 import statistics
 import sys
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))  # concealed.py imports true_masks from its folder
@@ -94,6 +99,21 @@ def targets(by_set: dict) -> str:
                      f"{c['controls_quiet'][1]} | {', '.join(c['wrong_names']) or 'none'} | {c['heldout_halved'][0]} of "
                      f"{c['heldout_halved'][1]} | {c['coefficients_within_25pc'][0]} of {c['coefficients_within_25pc'][1]} |")
     return "\n".join(lines)
+
+
+def exposure_line(by_set: dict) -> str:
+    """Line 6: the baselines' fitted exposure (``concealed.row``'s ``exposure_baseline``, a fraction
+    of the frame interval) over every run that fitted one, and the runs at its bound of 1."""
+    fitted = [(label, name, r["exposure_baseline"]["value"]) for label, rows in by_set.items()
+              for name, r in rows.items() if r.get("exposure_baseline")]
+    if not fitted:
+        return "No run fitted the exposure."
+    values = np.array([v for *_, v in fitted])
+    at_bound = [f"{label} {name}" for label, name, v in fitted if v >= 0.99]
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return (f"The baselines' fitted exposure (of the frame interval; the recordings' 0.5), {len(values)} runs: "
+            f"median {median:.3f}, quartiles {q1:.3f}–{q3:.3f}, range {values.min():.3f}–{values.max():.3f}; "
+            f"at its bound (0.99 or more) on {len(at_bound)}" + (f": {', '.join(at_bound)}." if at_bound else "."))
 
 
 def limits_table(by_set: dict, each: bool = False) -> str:
@@ -174,12 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fresh", type=int, nargs="+", metavar="K", help="these sets instead of the seven (0 the first)")
     ap.add_argument("--each", action="store_true", help="list every scalar case's truth over its limit")
     ap.add_argument("--beside", metavar="OTHER", help="another suffix's runs of the same sets side by side "
-                    "with these (a sixth table; e.g. the default beside its camera of twice the pixels, _x2)")
+                    "with these (a last table; e.g. the default beside its camera of twice the pixels, _x2)")
     args = ap.parse_args(argv)
     sets = tuple(args.fresh) if args.fresh is not None else SEVEN
     by_set = runs(args.suffix, sets)
     print(targets(by_set), outcomes(runs=by_set), verdict_grid(runs=by_set), limits_table(by_set, args.each),
-          located_table(by_set), sep="\n\n")
+          located_table(by_set), exposure_line(by_set), sep="\n\n")
     if args.beside is not None:
         print("\n" + beside(by_set, runs(args.beside, sets), (args.suffix or "''", args.beside)))
     return 0
