@@ -497,6 +497,10 @@ def test_standing_checks_the_runs_own_limit_against_what_it_named(tmp_path):
     assert standing.exposure_line(by_set) == (
         "The baselines' fitted exposure (of the frame interval; the recordings' 0.5), 3 runs: median 0.600, "
         "quartiles 0.550–0.800, range 0.500–1.000; at its bound (0.99 or more) on 1: fresh 1 drag_a.")
+    content = _content([], {})
+    content["outlier_frames"] = [0, 1]
+    by_set["first"]["control_x"] = conc.row("control_x", content)
+    assert standing.outlier_line(by_set) == "Frames left out as segmentation failures: on 1 of 3 runs, 2 frames in all."
     assert table[5] == "| control | 1 | 0 | 0 of 0 | 0 of 0 | 1 |"
     # two variants of the same set side by side: a drag below its limit (0.12 of 0.3) named where
     # the other's limit is 0.1, a control quiet in both

@@ -228,6 +228,7 @@ def row(name: str, content: dict, recordings: Path = RECORDINGS) -> dict:
             "heldout_px_after": last["heldout_centroid_px"], "iou_baseline": content["iou_baseline"],
             "params": params, "seconds": content["seconds"], "edge_px": last.get("edge_px", {}),
             "exposure_baseline": (content.get("exposure_fitted") or [None])[0],
+            "outlier_frames": content.get("outlier_frames", []),
             "flagged": flagged(content)}
 
 

@@ -20,7 +20,8 @@ From the stored runs of one variant (no fitting), over the sets asked for:
    predictions of the held-out parts, and the final model's, by how each recording ended;
 6. the exposure each baseline fitted (a nuisance; the recordings' own is half the frame
    interval): its median, quartiles and range, and the runs where it reached its bound, the whole
-   interval (on runs that fit one);
+   interval (on runs that fit one); and the runs that left frames out as segmentation failures
+   (``outlier_frames``);
 7. with ``--beside OTHER``, another variant's runs of the same sets side by side: right names
    and quiet controls of each, the recordings whose outcome differs, and by how much the other's
    detection limits are lower.
@@ -116,6 +117,14 @@ def exposure_line(by_set: dict) -> str:
             f"at its bound (0.99 or more) on {len(at_bound)}" + (f": {', '.join(at_bound)}." if at_bound else "."))
 
 
+def outlier_line(by_set: dict) -> str:
+    """Line 6's second part: the runs that left frames out as segmentation failures, and how many."""
+    rows = [r for rows in by_set.values() for r in rows.values()]
+    left = [len(r.get("outlier_frames", [])) for r in rows]
+    return (f"Frames left out as segmentation failures: on {sum(n > 0 for n in left)} of {len(rows)} runs, "
+            f"{sum(left)} frames in all.")
+
+
 def limits_table(by_set: dict, each: bool = False) -> str:
     """Table 4: :func:`tally` over every scalar case (with ``each``, every case's line first)."""
     lines, pairs = [], []
@@ -199,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     sets = tuple(args.fresh) if args.fresh is not None else SEVEN
     by_set = runs(args.suffix, sets)
     print(targets(by_set), outcomes(runs=by_set), verdict_grid(runs=by_set), limits_table(by_set, args.each),
-          located_table(by_set), exposure_line(by_set), sep="\n\n")
+          located_table(by_set), exposure_line(by_set) + " " + outlier_line(by_set), sep="\n\n")
     if args.beside is not None:
         print("\n" + beside(by_set, runs(args.beside, sets), (args.suffix or "''", args.beside)))
     return 0
