@@ -293,16 +293,9 @@ def main(argv=None) -> int:
         raise SystemExit(f"--scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.scale}")
     if args.fps_scale < 1 or (args.fps_scale != 1 and args.shutter):
         raise SystemExit(f"--fps-scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.fps_scale}")
-    specs = [(fps_scaled_spec(scaled_spec(s, args.scale), args.fps_scale), what)
-             for s, what in (shutter_specs() if args.shutter else concealed_specs(args.fresh))]
-    if args.crf is not None:
-        specs = [(s.replace(crf=args.crf), what) for s, what in specs]
-    if args.sharp:
-        specs = [(sharp_spec(s), what) for s, what in specs]
-    if args.transfer is not None:
-        if args.shutter:
-            raise SystemExit("--transfer makes a concealed set: not with --shutter")
-        specs = [(s.replace(transfer=args.transfer), what) for s, what in specs]
+    if args.transfer is not None and args.shutter:
+        raise SystemExit("--transfer makes a concealed set: not with --shutter")
+    specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)
     if args.list:
         for s, what in specs:
             print(f"{s.name:18s} {what}")
@@ -313,6 +306,14 @@ def main(argv=None) -> int:
         if unknown:
             raise SystemExit(f"unknown recording(s) {sorted(unknown)}; valid: {[s.name for s, _ in specs]}")
         specs = [(s, w) for s, w in specs if s.name in only]
+    # only the recordings to be made: a faster clock pins each throw, which draws it first
+    specs = [(fps_scaled_spec(scaled_spec(s, args.scale), args.fps_scale), what) for s, what in specs]
+    if args.crf is not None:
+        specs = [(s.replace(crf=args.crf), what) for s, what in specs]
+    if args.sharp:
+        specs = [(sharp_spec(s), what) for s, what in specs]
+    if args.transfer is not None:
+        specs = [(s.replace(transfer=args.transfer), what) for s, what in specs]
     out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer, args.scale, args.fps_scale))
     rows = []
     for spec, what in specs:
