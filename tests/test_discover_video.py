@@ -1274,7 +1274,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     """``params.speed_noise``: true records the share of the noise read as growing with the speed
     (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused.
     ``params.robust``: a positive number is recorded and said in the report; zero or a word,
-    refused with the key named. (One run takes both options.)"""
+    refused with the key named. ``params.jump_sigmas``: the default 6 is recorded; zero, a
+    negative number, a word or a boolean, refused. (One run takes both options.)"""
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
 
@@ -1288,6 +1289,10 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
         cfg = _quick_discover(f"params.robust={bad}")
         with pytest.raises(ConfigError, match=f"params.robust must be Huber's threshold .* got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_robust_{bad}")
+    for bad in ("0", "-1", "often", "true"):
+        cfg = _quick_discover(f"params.jump_sigmas={bad}")
+        with pytest.raises(ConfigError, match=f"(?i)params.jump_sigmas must be a positive number .* got '?{bad}'?"):
+            run(cfg, tmp_path / f"bad_jump_{bad}")
     cfg = _quick_discover("params.speed_noise=true", "params.robust=2")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
@@ -1295,6 +1300,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert content["models"][0]["chi2_per_obs"] > 0
     assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
     assert content["robust"] == 2.0
+    assert content["jump_sigmas"] == 6.0  # the jump test's default, recorded
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
 
 
@@ -1399,3 +1405,30 @@ def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():
     assert lines == ["  true frame rate: 58.50 ± 0.12 fps (60 fps stated)",
                      "  centre of mass: (5.6, -4.3, 0.0) ± (0.4, 0.5, 2.0) mm (body frame) from where uniform density puts it"]
     assert plain_unit_lines(["quadratic_drag"], params, 60.0) == []
+
+
+def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
+    """A frame whose mask sits 4 px off its neighbours' line (a failed segmentation) is left out
+    of every model at the default ``jump_sigmas`` (6 jitter sigmas) and listed; with
+    ``jump_sigmas=None`` no frame is left out, the same data kept whole. A bad value is refused
+    with its name."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.0})
+    problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)  # 4 px to the right
+    base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    kept = int(problem.used.sum())
+    flagged = dv.VideoProblem(problem, candidates=("time_scale",))
+    flagged._set_noise(base)
+    # the bad frame, and on these clean masks (a jitter of hundredths of a pixel) its two
+    # neighbours, each half as far off the line through theirs
+    assert 10 in flagged.outliers and set(flagged.outliers) <= {9, 10, 11}
+    assert not bool(flagged.problem.used[10]) and int(flagged.problem.used.sum()) == kept - len(flagged.outliers)
+    problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
+    problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
+    whole = dv.VideoProblem(problem, candidates=("time_scale",), jump_sigmas=None)
+    whole._set_noise(base)
+    assert whole.outliers == [] and int(whole.problem.used.sum()) == kept
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="jump_sigmas"):
+            dv.VideoProblem(problem, candidates=("time_scale",), jump_sigmas=bad)

@@ -82,7 +82,7 @@ from .search import (
 )
 from .video import _boxes, raw_moments
 
-__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "VIDEO_EFFECTS",
+__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "JUMP_SIGMAS", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "VIDEO_EFFECTS",
            "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
 
 # Effects a silhouette can see (all of the vocabulary).
@@ -107,6 +107,10 @@ EDGE_PX = 0.1
 # (experiments/discover/calibrate_noise.py: 0.38 on average over the five channels and four
 # recordings, lag two 0.16 where AR(1) predicts 0.14). The criterion whitens the residuals with it.
 FRAME_CORRELATION = 0.4
+# a frame that departs from the line through its neighbours by more than this many jitter standard
+# deviations, in any channel of the baseline's residuals, is left out as a failed segmentation
+# (VideoProblem(jump_sigmas=...), params.jump_sigmas; None: no frame is)
+JUMP_SIGMAS = 6.0
 
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
@@ -569,6 +573,11 @@ class VideoProblem:
             (``ModelFit.heldout_deviance``, ``heldout_logdet``), which
             ``SelectionSettings.heldout_margin`` decides by; one more Jacobian per fit, so only
             when asked.
+        jump_sigmas: a frame whose baseline residual departs from the straight line through its
+            two neighbours by more than this many jitter standard deviations, in any channel, is
+            left out of every model as a failed segmentation (:meth:`_set_noise`); None: no frame
+            is left out, and the criterion's loss (``robust``) alone limits what a bad frame
+            weighs.
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -585,8 +594,12 @@ class VideoProblem:
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
-                 backcast: bool = False, progress: Callable[[str], None] | None = None):
+                 backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
+                 progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
+        if jump_sigmas is not None and not (math.isfinite(jump_sigmas) and jump_sigmas > 0):
+            raise ValueError(f"jump_sigmas must be a positive number of jitter standard deviations or None, "
+                             f"got {jump_sigmas}")
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
@@ -661,6 +674,7 @@ class VideoProblem:
         self.frame_scale: np.ndarray | None = None
         self.speed_share = 0.0
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
+        self.jump_sigmas = jump_sigmas
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
         # a sphere's orientation and spin (6) are in the state but no silhouette shows them
@@ -1403,7 +1417,7 @@ class VideoProblem:
         radius, rho = float(np.hypot(*offset[far])), float(np.hypot(*normalised[far]))
         return radius, (radius / rho if rho > 0 else float(camera.fx))
 
-    def _set_noise(self, model: _Model, threshold: float = 6.0) -> None:
+    def _set_noise(self, model: _Model) -> None:
         """The edge nuisance's table, then noise floors from the baseline's residuals, after
         leaving out outlier frames.
 
@@ -1415,9 +1429,9 @@ class VideoProblem:
         edge bias, a quarter turn at once where it is near round.
 
         A frame is an outlier when, in any channel, it departs from the straight line through
-        its two neighbours by more than ``threshold`` jitter standard deviations (a failed
-        segmentation, e.g. a blurred first frame): missing physics is smooth in time and never
-        does that. Outliers are left out of every model's criterion and listed in the report.
+        its two neighbours by more than ``jump_sigmas`` jitter standard deviations (a failed
+        segmentation, e.g. a blurred first frame; None: none is). Outliers are left out of every
+        model's criterion and listed in the report.
         """
         with torch.no_grad():
             fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.nuisances))
@@ -1432,7 +1446,7 @@ class VideoProblem:
         idx = np.flatnonzero(used)
         self.lens_reach = self._reach(centroids[idx])
         outliers = np.zeros_like(used)
-        for name in CHANNELS:
+        for name in CHANNELS if self.jump_sigmas is not None else ():
             values = channels[name][idx]
             sigma = noise_floor(values)
             if not np.isfinite(sigma) or sigma <= 0 or len(values) < 5:
@@ -1442,7 +1456,7 @@ class VideoProblem:
             ends = np.array([values[0] - (2 * values[1] - values[2]), values[-1] - (2 * values[-2] - values[-3])])
             score = np.abs(inner) / (np.sqrt(1.5) * sigma)
             score[[0, -1]] = np.abs(ends) / (np.sqrt(6.0) * sigma)
-            outliers[idx[score > threshold]] = True
+            outliers[idx[score > self.jump_sigmas]] = True
         if outliers.any():
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
@@ -1569,7 +1583,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
-                   backcast: bool = False, progress: Callable[[str], None] | None = None) -> dict:
+                   backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
+                   progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1600,6 +1615,9 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             None: squares.
         backcast: the held-out test also predicts the first part of the frames backward from the
             rest, and scores the mean of the two parts' RMS (see :class:`VideoProblem`).
+        jump_sigmas: frames that jump off their neighbours by more than this many jitter standard
+            deviations are left out as failed segmentations (see :class:`VideoProblem`); None:
+            none are.
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1617,7 +1635,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          fit_exposure=fit_exposure, point_spread=point_spread,
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
                          heldout_deviance=settings.heldout_margin is not None, robust=robust, backcast=backcast,
-                         progress=say)
+                         jump_sigmas=jump_sigmas, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1663,7 +1681,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise": video.noise,
         "noise_edge_px": edge_px,
         "noise_speed_share": video.speed_share if speed_noise else None,
-        "robust": robust, "backcast": backcast,
+        "robust": robust, "backcast": backcast, "jump_sigmas": jump_sigmas,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,

@@ -464,7 +464,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         if cfg.data.get("points"):
             return run_points(cfg, out_dir, discover=True)
         raise ConfigError("discover: give data.video=<recording> or data.points=<t,x,y,z csv>")
-    from .discover_video import DEFAULT_CANDIDATES, EDGE_PX, VIDEO_EFFECTS, discover_video
+    from .discover_video import DEFAULT_CANDIDATES, EDGE_PX, JUMP_SIGMAS, VIDEO_EFFECTS, discover_video
 
     ctx = context(cfg)
     settings = params(cfg)
@@ -480,6 +480,11 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         raise ConfigError(f"params.speed_noise must be true or false, got {speed_noise!r}")
     robust = settings.pop("robust", None)
     backcast = settings.pop("backcast", None)
+    jump_sigmas = settings.pop("jump_sigmas", JUMP_SIGMAS)
+    if jump_sigmas is not None and (isinstance(jump_sigmas, bool) or not isinstance(jump_sigmas, (int, float))
+                                    or not (math.isfinite(jump_sigmas) and jump_sigmas > 0)):
+        raise ConfigError(f"params.jump_sigmas must be a positive number of jitter standard deviations or null "
+                          f"(no frame left out), got {jump_sigmas!r}")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -534,7 +539,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             robust=robust, backcast=backcast, progress=ctx["progress"])
+                             robust=robust, backcast=backcast,
+                             jump_sigmas=None if jump_sigmas is None else float(jump_sigmas), progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")

@@ -61,6 +61,7 @@ from torchfit.discover_video import (
     DEFAULT_CANDIDATES,
     EDGE_FORM,
     EDGE_PX,
+    JUMP_SIGMAS,
     VIDEO_EFFECTS,
     VIDEO_SELECTION,
     across_velocity,
@@ -91,7 +92,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
-            backcast: bool = False, search_final: int | None = None) -> dict:
+            backcast: bool = False, search_final: int | None = None, no_jump: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -108,6 +109,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
                           speed_noise=speed_noise, robust=robust, backcast=backcast,
+                          jump_sigmas=None if no_jump else JUMP_SIGMAS,
                           search=SearchSettings() if search_final is None else SearchSettings(final=search_final))
 
 
@@ -822,7 +824,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         search_final: int | None = None, scale: int = 1, fps_scale: int = 1) -> None:
+         search_final: int | None = None, scale: int = 1, fps_scale: int = 1, no_jump: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
     recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
@@ -835,7 +837,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + final_suffix(search_final))
+                + final_suffix(search_final) + ("_nojump" if no_jump else ""))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -866,7 +868,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
-                          backcast=backcast, search_final=search_final)
+                          backcast=backcast, search_final=search_final, no_jump=no_jump)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -955,6 +957,9 @@ if __name__ == "__main__":
                     help="the held-out test also predicts the first quarter of the frames backward from the rest "
                          "and scores the mean of the two parts (discover_video(backcast=True); "
                          "results/concealed..._backcast/)")
+    ap.add_argument("--no-jump-test", action="store_true",
+                    help="leave no frame out as a failed segmentation (discover_video(jump_sigmas=None); "
+                         "results/concealed..._nojump/)")
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
@@ -983,7 +988,7 @@ if __name__ == "__main__":
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
     variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
-    variant += final_suffix(args.search_final)
+    variant += final_suffix(args.search_final) + ("_nojump" if args.no_jump_test else "")
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -1123,4 +1128,4 @@ if __name__ == "__main__":
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
-         fps_scale=args.fps_scale)
+         fps_scale=args.fps_scale, no_jump=args.no_jump_test)
