@@ -119,6 +119,12 @@ def robust_suffix(robust: float | None) -> str:
     return "" if robust is None else f"_huber{robust:g}"
 
 
+def jump_suffix(no_jump: bool) -> str:
+    """The results folder's suffix of a run that leaves no frame out as a failed segmentation
+    (``discover_video(jump_sigmas=None)``; none for the jump test at its default)."""
+    return "_nojump" if no_jump else ""
+
+
 def backcast_suffix(backcast: bool) -> str:
     """The results folder's suffix of a run whose held-out test also backcasts the first quarter
     (none without)."""
@@ -837,7 +843,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + final_suffix(search_final) + ("_nojump" if no_jump else ""))
+                + final_suffix(search_final) + jump_suffix(no_jump))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -988,7 +994,7 @@ if __name__ == "__main__":
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
     variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
-    variant += final_suffix(args.search_final) + ("_nojump" if args.no_jump_test else "")
+    variant += final_suffix(args.search_final) + jump_suffix(args.no_jump_test)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
