@@ -768,9 +768,10 @@ def test_results_folders_carry_their_settings_on_every_set():
         "concealed_fresh4_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12")
     assert conc.final_suffix(6) == ""  # the first runs' search: their folders keep their names
     assert conc.final_suffix(None) == conc.final_suffix(SearchSettings().final) == "_final12"
-    assert conc.results_name(default + conc.final_suffix(12) + conc.jump_suffix(True), fresh=6) == (
+    assert conc.results_name(default + conc.final_suffix(12) + conc.jump_suffix(None), fresh=6) == (
         "concealed_fresh6_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12_nojump")
-    assert conc.jump_suffix(False) == ""  # the jump test at its default: the default's folders
+    assert conc.jump_suffix(conc.JUMP_SIGMAS) == ""  # the jump test at its default: the default's folders
+    assert conc.jump_suffix(4.0) == "_jump4"
 
 
 def test_blur_estimates_recover_a_known_exposure():

@@ -92,7 +92,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
             shading_fit: str | None = None, speed_noise: bool = False,
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
-            backcast: bool = False, search_final: int | None = None, no_jump: bool = False) -> dict:
+            backcast: bool = False, search_final: int | None = None,
+            jump_sigmas: float | None = JUMP_SIGMAS) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -109,7 +110,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
                           speed_noise=speed_noise, robust=robust, backcast=backcast,
-                          jump_sigmas=None if no_jump else JUMP_SIGMAS,
+                          jump_sigmas=jump_sigmas,
                           search=SearchSettings() if search_final is None else SearchSettings(final=search_final))
 
 
@@ -119,10 +120,13 @@ def robust_suffix(robust: float | None) -> str:
     return "" if robust is None else f"_huber{robust:g}"
 
 
-def jump_suffix(no_jump: bool) -> str:
-    """The results folder's suffix of a run that leaves no frame out as a failed segmentation
-    (``discover_video(jump_sigmas=None)``; none for the jump test at its default)."""
-    return "_nojump" if no_jump else ""
+def jump_suffix(jump_sigmas: float | None) -> str:
+    """The results folder's suffix of a run whose jump test leaves frames out at ``jump_sigmas``
+    jitter standard deviations (``discover_video(jump_sigmas=...)``): none at the default
+    (``JUMP_SIGMAS``), ``_nojump`` where no frame is left out (None), else ``_jump<S>``."""
+    if jump_sigmas is None:
+        return "_nojump"
+    return "" if jump_sigmas == JUMP_SIGMAS else f"_jump{jump_sigmas:g}"
 
 
 def backcast_suffix(backcast: bool) -> str:
@@ -830,7 +834,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         search_final: int | None = None, scale: int = 1, fps_scale: int = 1, no_jump: bool = False) -> None:
+         search_final: int | None = None, scale: int = 1, fps_scale: int = 1,
+         jump_sigmas: float | None = JUMP_SIGMAS) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
     recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
@@ -843,7 +848,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + final_suffix(search_final) + jump_suffix(no_jump))
+                + final_suffix(search_final) + jump_suffix(jump_sigmas))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -874,7 +879,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
-                          backcast=backcast, search_final=search_final, no_jump=no_jump)
+                          backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -963,6 +968,9 @@ if __name__ == "__main__":
                     help="the held-out test also predicts the first quarter of the frames backward from the rest "
                          "and scores the mean of the two parts (discover_video(backcast=True); "
                          "results/concealed..._backcast/)")
+    ap.add_argument("--jump-sigmas", type=float, default=JUMP_SIGMAS, metavar="S",
+                    help=f"leave out frames that jump off their neighbours by more than S jitter sigmas "
+                         f"(default {JUMP_SIGMAS:g}; results/concealed..._jump<S>/ otherwise)")
     ap.add_argument("--no-jump-test", action="store_true",
                     help="leave no frame out as a failed segmentation (discover_video(jump_sigmas=None); "
                          "results/concealed..._nojump/)")
@@ -994,7 +1002,12 @@ if __name__ == "__main__":
                if args.albedo_passes is not None or args.exposure or args.linear_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
     variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
-    variant += final_suffix(args.search_final) + jump_suffix(args.no_jump_test)
+    if not (math.isfinite(args.jump_sigmas) and args.jump_sigmas > 0):
+        ap.error(f"--jump-sigmas needs a positive number of jitter standard deviations, got {args.jump_sigmas}")
+    if args.no_jump_test and args.jump_sigmas != JUMP_SIGMAS:
+        ap.error("--no-jump-test leaves no frame out: not with --jump-sigmas")
+    jump_sigmas = None if args.no_jump_test else args.jump_sigmas
+    variant += final_suffix(args.search_final) + jump_suffix(jump_sigmas)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -1134,4 +1147,4 @@ if __name__ == "__main__":
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
-         fps_scale=args.fps_scale, no_jump=args.no_jump_test)
+         fps_scale=args.fps_scale, jump_sigmas=jump_sigmas)
