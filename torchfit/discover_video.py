@@ -82,8 +82,8 @@ from .search import (
 )
 from .video import _boxes, raw_moments
 
-__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "JUMP_SIGMAS", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "VIDEO_EFFECTS",
-           "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
+__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_SIGMAS",
+           "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
 
 # Effects a silhouette can see (all of the vocabulary).
 VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
@@ -597,11 +597,11 @@ class VideoProblem:
                  backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
+        if unknown:
+            raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if jump_sigmas is not None and not (math.isfinite(jump_sigmas) and jump_sigmas > 0):
             raise ValueError(f"jump_sigmas must be a positive number of jitter standard deviations or None, "
                              f"got {jump_sigmas}")
-        if unknown:
-            raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
             raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
         if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
@@ -1430,8 +1430,10 @@ class VideoProblem:
 
         A frame is an outlier when, in any channel, it departs from the straight line through
         its two neighbours by more than ``jump_sigmas`` jitter standard deviations (a failed
-        segmentation, e.g. a blurred first frame; None: none is). Outliers are left out of every
-        model's criterion and listed in the report.
+        segmentation, e.g. a blurred first frame; None: none is): missing physics is smooth in
+        time. Outliers are left out of every model's criterion and listed in the report. Kept,
+        such frames cost right names even under Huber's loss (experiments/discover/HISTORY.md,
+        forty-fifth session).
         """
         with torch.no_grad():
             fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.nuisances))
