@@ -1448,7 +1448,8 @@ class VideoProblem:
         idx = np.flatnonzero(used)
         self.lens_reach = self._reach(centroids[idx])
         outliers = np.zeros_like(used)
-        for name in CHANNELS if self.jump_sigmas is not None else ():
+        tested = CHANNELS if self.jump_sigmas is not None else ()  # None: the test is off
+        for name in tested:
             values = channels[name][idx]
             sigma = noise_floor(values)
             if not np.isfinite(sigma) or sigma <= 0 or len(values) < 5:

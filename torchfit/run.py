@@ -485,6 +485,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                                     or not (math.isfinite(jump_sigmas) and jump_sigmas > 0)):
         raise ConfigError(f"params.jump_sigmas must be a positive number of jitter standard deviations or null "
                           f"(no frame left out), got {jump_sigmas!r}")
+    jump_sigmas = None if jump_sigmas is None else float(jump_sigmas)
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -539,8 +540,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             robust=robust, backcast=backcast,
-                             jump_sigmas=None if jump_sigmas is None else float(jump_sigmas), progress=ctx["progress"])
+                             robust=robust, backcast=backcast, jump_sigmas=jump_sigmas, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
