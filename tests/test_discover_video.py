@@ -1417,18 +1417,23 @@ def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     problem, truth = _synthetic("time_scale", {"time_scale": 1.0})
     problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)  # 4 px to the right
     base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
-    kept = int(problem.used.sum())
+    kept, used = int(problem.used.sum()), problem.used.cpu().numpy().astype(bool)
     flagged = dv.VideoProblem(problem, candidates=("time_scale",))
     flagged._set_noise(base)
     # the bad frame, and on these clean masks (a jitter of hundredths of a pixel) its two
     # neighbours, each half as far off the line through theirs
     assert 10 in flagged.outliers and set(flagged.outliers) <= {9, 10, 11}
     assert not bool(flagged.problem.used[10]) and int(flagged.problem.used.sum()) == kept - len(flagged.outliers)
+    # why: the 4 px shift is a jump in centroid_x, far past the threshold, named with its size
+    jumps = flagged.outlier_jumps(10)
+    assert next(iter(jumps)) == "centroid_x" and jumps["centroid_x"] > 4 * dv.JUMP_SIGMAS
+    assert all(v > dv.JUMP_SIGMAS for v in jumps.values())
+    assert set(flagged.jump_scores) == set(dv.CHANNELS) and np.isnan(flagged.jump_scores["scale"][~used]).all()
     problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
     problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
     whole = dv.VideoProblem(problem, candidates=("time_scale",), jump_sigmas=None)
     whole._set_noise(base)
-    assert whole.outliers == [] and int(whole.problem.used.sum()) == kept
+    assert whole.outliers == [] and int(whole.problem.used.sum()) == kept and whole.jump_scores == {}
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="jump_sigmas"):
             dv.VideoProblem(problem, candidates=("time_scale",), jump_sigmas=bad)

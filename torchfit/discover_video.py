@@ -674,6 +674,9 @@ class VideoProblem:
         self.frame_scale: np.ndarray | None = None
         self.speed_share = 0.0
         self.outliers: list[int] = []  # frames (of the span) left out as segmentation failures
+        # per channel, (T,) each frame's jump off the line through its neighbours in jitter
+        # standard deviations (NaN: a frame not used, or a channel not tested); set with the noise
+        self.jump_scores: dict[str, np.ndarray] = {}
         self.jump_sigmas = jump_sigmas
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
@@ -1406,6 +1409,13 @@ class VideoProblem:
                                               for f in one.fields())), {}, self.start_nuisances()))
         return starts
 
+    def outlier_jumps(self, frame: int) -> dict[str, float]:
+        """The channels in which ``frame`` (of the span) jumps past ``jump_sigmas``, and by how
+        many jitter standard deviations (:meth:`_set_noise`), largest first."""
+        past = {name: float(scores[frame]) for name, scores in self.jump_scores.items()
+                if self.jump_sigmas is not None and scores[frame] > self.jump_sigmas}
+        return dict(sorted(past.items(), key=lambda item: -item[1]))
+
     def _reach(self, centroids: np.ndarray) -> tuple[float, float]:
         """``(radius_px, focal_px)`` of the (N, 2) observed centroid (px) farthest from the
         principal point in normalised units: its distance in pixels, and pixels per unit of
@@ -1448,6 +1458,7 @@ class VideoProblem:
         idx = np.flatnonzero(used)
         self.lens_reach = self._reach(centroids[idx])
         outliers = np.zeros_like(used)
+        self.jump_scores = {}
         tested = CHANNELS if self.jump_sigmas is not None else ()  # None: the test is off
         for name in tested:
             values = channels[name][idx]
@@ -1460,6 +1471,8 @@ class VideoProblem:
             score = np.abs(inner) / (np.sqrt(1.5) * sigma)
             score[[0, -1]] = np.abs(ends) / (np.sqrt(6.0) * sigma)
             outliers[idx[score > self.jump_sigmas]] = True
+            self.jump_scores[name] = np.full(len(used), np.nan)
+            self.jump_scores[name][idx] = score
         if outliers.any():
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
@@ -1704,6 +1717,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
+        # each left-out frame's channels past the threshold, in jitter standard deviations
+        "outlier_jumps": {str(int(span[i])): video.outlier_jumps(i) for i in video.outliers},
         "settings": asdict(settings),
         "candidates": list(video.candidates),
         "seconds": time.perf_counter() - clock,
@@ -2053,8 +2068,10 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     lines += prediction_line(predicted)
     lines += size_mismatch_lines(mismatch, selection.verdict)
     if video.outliers:
-        lines.append(f"Left out as segmentation failures (jumps off their neighbours): frames {video.outliers} "
-                     "of the fitted span.")
+        jumps = "; ".join(f"{i}: " + ", ".join(f"{k} {v:.1f}" for k, v in video.outlier_jumps(i).items())
+                          for i in video.outliers)
+        lines.append(f"Left out as segmentation failures (jumps off their neighbours, in jitter sigmas), frames "
+                     f"of the fitted span: {jumps}.")
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape),
                          no_size={name: "a ball's lift is the vector C_L w, and the video does not see its spin"
                                   for name in traded})

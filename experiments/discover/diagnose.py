@@ -36,6 +36,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
     python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
     python experiments/discover/diagnose.py frame-correlation SET [SET...]  # the segmentation error's lag-one correlation on each set's controls, ~30 s a recording
+    python experiments/discover/diagnose.py jump-scores SET NAME...     # the jump test's score per channel and frame, as the default meets them, ~1 min each
     python experiments/discover/diagnose.py end-frames SET [SETTING=V...]  # the coverage's error on a clip's first and last frames, the default's segmentation and each SETTING=V's, ~15 s a recording each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
@@ -1437,6 +1438,47 @@ def gravity_known(folder: Path) -> dict:
     return {"verdict": content["verdict"], "truth_effects": content.get("truth_effects"), "round_one": rounds}
 
 
+class _NoiseSet(Exception):
+    """Raised by :func:`jump_scores`'s patch once discover has set its noise floors."""
+
+    def __init__(self, video: dv.VideoProblem):
+        super().__init__("noise set")
+        self.video = video
+
+
+def jump_scores(folder: Path) -> dict:
+    """The jump test's scores, per channel and frame, as discover's default run meets them: the
+    default's path (``concealed.py`` with the default's flags) up to where the baseline's noise
+    floors are set from the search's best (``VideoProblem._set_noise``), then stopped. Per
+    channel, each frame's jump off the line through its neighbours in jitter standard
+    deviations (None: a frame not used); the frames are the video's."""
+    from concealed import run_one
+
+    original = dv.VideoProblem._set_noise
+
+    def stop(self, model):
+        original(self, model)
+        raise _NoiseSet(self)
+
+    dv.VideoProblem._set_noise = stop
+    try:
+        run_one(folder, HERE / "results" / "diagnose_jump-scores_scratch", albedo_passes=1, exposure=True,
+                exposure_fraction=0.5, exposure_taps=0, fit_exposure=True, robust=2.0, backcast=True,
+                search_final=12)
+        raise RuntimeError(f"{folder}: discover ended without setting its noise floors")
+    except _NoiseSet as stopped:
+        video = stopped.video
+    finally:
+        dv.VideoProblem._set_noise = original
+    _, _, span = load_problem(folder, *recording_parts(folder)[1:], False, SegmentationSettings(albedo_passes=1))
+    row = {"frames": [int(f) for f in span], "outliers": [int(span[i]) for i in video.outliers],
+           "scores": {name: [None if not np.isfinite(v) else round(float(v), 3) for v in scores]
+                      for name, scores in video.jump_scores.items()}}
+    print(folder.parent.name, folder.name, "left out", row["outliers"],
+          {int(span[i]): video.outlier_jumps(i) for i in video.outliers}, flush=True)
+    return row
+
+
 def lens_residual(folder: Path, settings=None) -> dict:
     """Is a lens left after undistortion? The soft coverage's centroids (the segmentation's own
     moments, each frame's coverage undistorted through the calibrated camera, truth.json's
@@ -1594,7 +1636,7 @@ def main(argv: list[str]) -> None:
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
                 "spread-stall": spread_stall, "baseline-starts": baseline_starts,
                 "shape-frames": shape_frames, "error-speed": error_speed, "regions": regions,
-                "lens-residual": lens_residual, "gravity-known": gravity_known}
+                "lens-residual": lens_residual, "gravity-known": gravity_known, "jump-scores": jump_scores}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1618,7 +1660,7 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions + parts + held + robust + backcast + exact]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
-                          "shape-frames", "error-speed", "regions", "lens-residual")
+                          "shape-frames", "error-speed", "regions", "lens-residual", "jump-scores")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
