@@ -1451,12 +1451,24 @@ def jump_scores(folder: Path) -> dict:
     default's path (``concealed.py`` with the default's flags) up to where the baseline's noise
     floors are set from the search's best (``VideoProblem._set_noise``), then stopped. Per
     channel, each frame's jump off the line through its neighbours in jitter standard
-    deviations (None: a frame not used); the frames are the video's."""
+    deviations (None: a frame not used), and the channel's residuals themselves (``values``,
+    the observed minus the search's best) with their jitter floor (``sigma``,
+    :func:`torchfit.residuals.noise_floor` on the used frames); the frames are the video's."""
     from concealed import run_one
 
-    original = dv.VideoProblem._set_noise
+    from torchfit.residuals import noise_floor
+
+    original, seen = dv.VideoProblem._set_noise, []
 
     def stop(self, model):
+        channels_of = self._channels_of
+
+        def captured(*args, **kwargs):  # the residual channels _set_noise tests, the first call's
+            out = channels_of(*args, **kwargs)
+            seen.append({k: v[0].detach().cpu().numpy() for k, v in out.items()})
+            return out
+
+        self._channels_of = captured
         original(self, model)
         raise _NoiseSet(self)
 
@@ -1474,6 +1486,9 @@ def jump_scores(folder: Path) -> dict:
     row = {"frames": [int(f) for f in span], "outliers": [int(span[i]) for i in video.outliers],
            "scores": {name: [None if not np.isfinite(v) else round(float(v), 3) for v in scores]
                       for name, scores in video.jump_scores.items()}}
+    used = np.isfinite(next(iter(video.jump_scores.values()))) if video.jump_scores else np.zeros(len(span), bool)
+    row["values"] = {name: [float(v) if ok else None for v, ok in zip(values, used)] for name, values in seen[0].items()}
+    row["sigma"] = {name: float(noise_floor(values[used])) for name, values in seen[0].items()}
     print(folder.parent.name, folder.name, "left out", row["outliers"],
           {int(span[i]): video.outlier_jumps(i) for i in video.outliers}, flush=True)
     return row
