@@ -772,6 +772,7 @@ def test_results_folders_carry_their_settings_on_every_set():
         "concealed_fresh6_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12_nojump")
     assert conc.jump_suffix(conc.JUMP_SIGMAS) == ""  # the jump test at its default: the default's folders
     assert conc.jump_suffix(4.0) == "_jump4"
+    assert conc.jump_suffix(conc.JUMP_SIGMAS, True) == "_1by1" and conc.jump_suffix(4.0, True) == "_jump4_1by1"
 
 
 def test_blur_estimates_recover_a_known_exposure():

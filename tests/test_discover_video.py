@@ -1407,6 +1407,36 @@ def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():
     assert plain_unit_lines(["quadratic_drag"], params, 60.0) == []
 
 
+def test_jump_outliers_one_at_a_time_takes_no_neighbour_with_a_failed_frame():
+    """On white jitter (sigma 1) with one frame 20 sigma off inside and the first frame 40
+    sigma off (an end's line is extrapolated, so its score is half as large): at once, each takes its neighbours with it (inside: both, each half as far off;
+    at the start: the second frame, whose score the stencil makes equal to the first's). One at
+    a time, only the two failed frames go. Their scores are where they were left out; a clean
+    line leaves nothing out either way, and a channel too short is not tested."""
+    from torchfit.discover_video import jump_outliers
+
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=60) + 0.01 * np.arange(60)  # a slow trend is not a jump
+    values[30] += 20.0
+    values[0] -= 40.0
+    at_once, scores = jump_outliers({"c": values}, 6.0)
+    assert {0, 1, 29, 30, 31} <= set(np.flatnonzero(at_once))
+    assert scores["c"][0] == pytest.approx(scores["c"][1])
+    one, scores = jump_outliers({"c": values}, 6.0, one_at_a_time=True)
+    assert sorted(np.flatnonzero(one)) == [0, 30]
+    assert scores["c"][30] > 12 and scores["c"][0] > 6 and np.all(scores["c"][~one] <= 6.0)
+    # the second frame off: the tie takes the first, and the second, still off the line through
+    # the next two, goes after it (three frames cannot say which of the first two failed)
+    values = rng.normal(size=60)
+    values[1] += 20.0
+    one, _ = jump_outliers({"c": values, "d": rng.normal(size=60)}, 6.0, one_at_a_time=True)
+    assert sorted(np.flatnonzero(one)) == [0, 1]  # the end first (a tie), then the second still jumps
+    clean = {"c": rng.normal(size=60)}
+    assert not jump_outliers(clean, 6.0)[0].any() and not jump_outliers(clean, 6.0, True)[0].any()
+    out, scores = jump_outliers({"c": np.array([0.0, 9.0, 0.0, 0.0])}, 6.0, True)
+    assert not out.any() and scores == {}
+
+
 def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     """A frame whose mask sits 4 px off its neighbours' line (a failed segmentation) is left out
     of every model at the default ``jump_sigmas`` (6 jitter sigmas) and listed; with

@@ -112,6 +112,70 @@ FRAME_CORRELATION = 0.4
 # (VideoProblem(jump_sigmas=...), params.jump_sigmas; None: no frame is)
 JUMP_SIGMAS = 6.0
 
+
+def _jump_stencil(values: np.ndarray, sigma: float) -> np.ndarray:
+    """(M,) each value's departure from the line through its two neighbours (the first and last:
+    from the line through the next two), in jitter standard deviations ``sigma`` of (M,)
+    ``values``, M >= 3. Inside it is a second difference over its own spread (sqrt(1.5) sigma
+    for white jitter), and :func:`torchfit.residuals.noise_floor` measures sigma from the same
+    second differences, so the score keeps its scale under correlated jitter."""
+    padded = np.concatenate(([2 * values[0] - values[1]], values, [2 * values[-1] - values[-2]]))
+    score = np.abs(values - 0.5 * (padded[:-2] + padded[2:])) / (np.sqrt(1.5) * sigma)
+    ends = np.array([values[0] - (2 * values[1] - values[2]), values[-1] - (2 * values[-2] - values[-3])])
+    score[[0, -1]] = np.abs(ends) / (np.sqrt(6.0) * sigma)
+    return score
+
+
+def jump_outliers(channels: dict[str, np.ndarray], sigmas: float,
+                  one_at_a_time: bool = False) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The jump test on residual channels of the frames in use: ``channels`` maps a channel's
+    name to its (N,) values, in frame order. Each channel's jitter ``sigma`` is its
+    :func:`torchfit.residuals.noise_floor` over all N frames (a channel with fewer than 5 frames,
+    or no finite positive floor, is not tested); a frame's score is its departure from the line
+    through its neighbours in that sigma (:func:`_jump_stencil`).
+
+    At once (``one_at_a_time`` False): every frame past ``sigmas`` in any channel is an outlier.
+    A frame that jumps by d also moves its neighbours' lines, by d / 2, so a large jump takes
+    them out with it; and the first frame's score equals the second's (the last's, the one
+    before), whichever of the two jumped.
+
+    One at a time: the frame with the largest score in any channel, when past ``sigmas``, is
+    left out and the scores are taken again over the frames left, their neighbours closing
+    over the gap, until none is past. A tie between an end frame and its neighbour (which the
+    stencil makes whenever either jumps) goes to the end frame; its neighbour is left out
+    after it only if it still jumps. So a single failed frame takes no neighbour with it.
+
+    Returns the (N,) bool outliers and, per tested channel, (N,) scores: a left-out frame's
+    where it was left out, a kept frame's in the last pass.
+    """
+    n = len(next(iter(channels.values()))) if channels else 0
+    floors = {name: noise_floor(values) for name, values in channels.items()}
+    tested = {name: sigma for name, sigma in floors.items()
+              if n >= 5 and np.isfinite(sigma) and sigma > 0}
+    scores = {name: np.full(n, np.nan) for name in tested}
+    keep = np.ones(n, dtype=bool)
+    if not tested:
+        return ~keep, scores
+    while True:
+        left = np.flatnonzero(keep)
+        current = {name: _jump_stencil(channels[name][left], sigma) for name, sigma in tested.items()}
+        for name, score in current.items():
+            scores[name][left] = score
+        worst = np.max(np.stack(list(current.values())), axis=0)  # (M,) each frame's largest
+        if not one_at_a_time:
+            keep[left[worst > sigmas]] = False
+            return ~keep, scores
+        k = int(np.argmax(worst))
+        if k == 1 and worst[0] >= worst[1] * (1 - 1e-9):
+            k = 0
+        elif k == len(left) - 2 and worst[-1] >= worst[-2] * (1 - 1e-9):
+            k = len(left) - 1
+        if worst[k] <= sigmas:
+            return ~keep, scores
+        keep[left[k]] = False
+        if len(left) - 1 < 5:  # too few frames left to judge a line
+            return ~keep, scores
+
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
 # The edge nuisance can hide a size mismatch: a wrong clock scales the flight's depth, and the
@@ -578,6 +642,9 @@ class VideoProblem:
             left out of every model as a failed segmentation (:meth:`_set_noise`); None: no frame
             is left out, and the criterion's loss (``robust``) alone limits what a bad frame
             weighs.
+        jump_one_at_a_time: leave the frames out worst first, the scores taken again over the
+            frames left after each, so that a failed frame takes no neighbour with it
+            (:func:`jump_outliers`); False: every frame past the threshold at once.
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -595,7 +662,7 @@ class VideoProblem:
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
                  backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                 progress: Callable[[str], None] | None = None):
+                 jump_one_at_a_time: bool = False, progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
@@ -678,6 +745,7 @@ class VideoProblem:
         # standard deviations (NaN: a frame not used, or a channel not tested); set with the noise
         self.jump_scores: dict[str, np.ndarray] = {}
         self.jump_sigmas = jump_sigmas
+        self.jump_one_at_a_time = jump_one_at_a_time
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
         # a sphere's orientation and spin (6) are in the state but no silhouette shows them
@@ -1441,7 +1509,7 @@ class VideoProblem:
         A frame is an outlier when, in any channel, it departs from the straight line through
         its two neighbours by more than ``jump_sigmas`` jitter standard deviations (a failed
         segmentation, e.g. a blurred first frame; None: none is): missing physics is smooth in
-        time. Outliers are left out of every model's criterion and listed in the report. Kept,
+        time (:func:`jump_outliers`, at once or, ``jump_one_at_a_time``, worst first). Outliers are left out of every model's criterion and listed in the report. Kept,
         such frames cost right names even under Huber's loss (experiments/discover/HISTORY.md,
         forty-fifth session).
         """
@@ -1459,20 +1527,13 @@ class VideoProblem:
         self.lens_reach = self._reach(centroids[idx])
         outliers = np.zeros_like(used)
         self.jump_scores = {}
-        tested = CHANNELS if self.jump_sigmas is not None else ()  # None: the test is off
-        for name in tested:
-            values = channels[name][idx]
-            sigma = noise_floor(values)
-            if not np.isfinite(sigma) or sigma <= 0 or len(values) < 5:
-                continue
-            padded = np.concatenate(([2 * values[0] - values[1]], values, [2 * values[-1] - values[-2]]))
-            inner = values - 0.5 * (padded[:-2] + padded[2:])  # std sqrt(1.5) sigma inside
-            ends = np.array([values[0] - (2 * values[1] - values[2]), values[-1] - (2 * values[-2] - values[-3])])
-            score = np.abs(inner) / (np.sqrt(1.5) * sigma)
-            score[[0, -1]] = np.abs(ends) / (np.sqrt(6.0) * sigma)
-            outliers[idx[score > self.jump_sigmas]] = True
-            self.jump_scores[name] = np.full(len(used), np.nan)
-            self.jump_scores[name][idx] = score
+        if self.jump_sigmas is not None:  # None: the test is off
+            left_out, scores = jump_outliers({name: channels[name][idx] for name in CHANNELS}, self.jump_sigmas,
+                                             self.jump_one_at_a_time)
+            outliers[idx[left_out]] = True
+            for name, score in scores.items():
+                self.jump_scores[name] = np.full(len(used), np.nan)
+                self.jump_scores[name][idx] = score
         if outliers.any():
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
@@ -1600,7 +1661,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
                    backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                   progress: Callable[[str], None] | None = None) -> dict:
+                   jump_one_at_a_time: bool = False, progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1634,6 +1695,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         jump_sigmas: frames that jump off their neighbours by more than this many jitter standard
             deviations are left out as failed segmentations (see :class:`VideoProblem`); None:
             none are.
+        jump_one_at_a_time: those frames worst first, each time taken again over the frames
+            left (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1651,7 +1714,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          fit_exposure=fit_exposure, point_spread=point_spread,
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
                          heldout_deviance=settings.heldout_margin is not None, robust=robust, backcast=backcast,
-                         jump_sigmas=jump_sigmas, progress=say)
+                         jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1698,6 +1761,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise_edge_px": edge_px,
         "noise_speed_share": video.speed_share if speed_noise else None,
         "robust": robust, "backcast": backcast, "jump_sigmas": jump_sigmas,
+        "jump_one_at_a_time": jump_one_at_a_time,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,

@@ -93,7 +93,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             shading_fit: str | None = None, speed_noise: bool = False,
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
             backcast: bool = False, search_final: int | None = None,
-            jump_sigmas: float | None = JUMP_SIGMAS) -> dict:
+            jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -110,7 +110,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           exposure=recording_exposure(truth, exposure_fraction, exposure_taps) if exposure else None,
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
                           speed_noise=speed_noise, robust=robust, backcast=backcast,
-                          jump_sigmas=jump_sigmas,
+                          jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time,
                           search=SearchSettings() if search_final is None else SearchSettings(final=search_final))
 
 
@@ -120,13 +120,14 @@ def robust_suffix(robust: float | None) -> str:
     return "" if robust is None else f"_huber{robust:g}"
 
 
-def jump_suffix(jump_sigmas: float | None) -> str:
+def jump_suffix(jump_sigmas: float | None, one_at_a_time: bool = False) -> str:
     """The results folder's suffix of a run whose jump test leaves frames out at ``jump_sigmas``
     jitter standard deviations (``discover_video(jump_sigmas=...)``): none at the default
-    (``JUMP_SIGMAS``), ``_nojump`` where no frame is left out (None), else ``_jump<S>``."""
+    (``JUMP_SIGMAS``), ``_nojump`` where no frame is left out (None), else ``_jump<S>``; then
+    ``_1by1`` where they are left out worst first (``jump_one_at_a_time``)."""
     if jump_sigmas is None:
         return "_nojump"
-    return "" if jump_sigmas == JUMP_SIGMAS else f"_jump{jump_sigmas:g}"
+    return ("" if jump_sigmas == JUMP_SIGMAS else f"_jump{jump_sigmas:g}") + ("_1by1" if one_at_a_time else "")
 
 
 def backcast_suffix(backcast: bool) -> str:
@@ -835,7 +836,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
          search_final: int | None = None, scale: int = 1, fps_scale: int = 1,
-         jump_sigmas: float | None = JUMP_SIGMAS) -> None:
+         jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
     recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
@@ -848,7 +849,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + final_suffix(search_final) + jump_suffix(jump_sigmas))
+                + final_suffix(search_final) + jump_suffix(jump_sigmas, jump_one_at_a_time))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -879,7 +880,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
-                          backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas)
+                          backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas,
+                          jump_one_at_a_time=jump_one_at_a_time)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -974,6 +976,10 @@ if __name__ == "__main__":
     ap.add_argument("--no-jump-test", action="store_true",
                     help="leave no frame out as a failed segmentation (discover_video(jump_sigmas=None); "
                          "results/concealed..._nojump/)")
+    ap.add_argument("--jump-one-at-a-time", action="store_true",
+                    help="the jump test leaves frames out worst first, taking the scores again after each, so a "
+                         "failed frame takes no neighbour with it (discover_video(jump_one_at_a_time=True); "
+                         "results/concealed..._1by1/)")
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
@@ -1006,8 +1012,10 @@ if __name__ == "__main__":
         ap.error(f"--jump-sigmas needs a positive number of jitter standard deviations, got {args.jump_sigmas}")
     if args.no_jump_test and args.jump_sigmas != JUMP_SIGMAS:
         ap.error("--no-jump-test leaves no frame out: not with --jump-sigmas")
+    if args.no_jump_test and args.jump_one_at_a_time:
+        ap.error("--no-jump-test leaves no frame out: not with --jump-one-at-a-time")
     jump_sigmas = None if args.no_jump_test else args.jump_sigmas
-    variant += final_suffix(args.search_final) + jump_suffix(jump_sigmas)
+    variant += final_suffix(args.search_final) + jump_suffix(jump_sigmas, args.jump_one_at_a_time)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -1147,4 +1155,4 @@ if __name__ == "__main__":
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
-         fps_scale=args.fps_scale, jump_sigmas=jump_sigmas)
+         fps_scale=args.fps_scale, jump_sigmas=jump_sigmas, jump_one_at_a_time=args.jump_one_at_a_time)
