@@ -1,13 +1,15 @@
 """Which channel makes the jump test leave a frame out, at 6 jitter sigmas and at a stricter
 threshold (HISTORY.md, *Forty-sixth session*).
 
-    python experiments/discover/jump_channels.py [--sigmas 6 4] [--sets recordings recordings_fresh6 ...]
+    python experiments/discover/jump_channels.py [--sigmas 6 4] [--sets recordings recordings_fresh6 ...] [--one-at-a-time]
 
 Reads ``results/diagnose_jump-scores_<set>_<name>.json`` (``diagnose.py jump-scores SET NAME...``)
 and prints, per threshold, how many frames each channel leaves out (a frame counts once per
 channel past the threshold), on controls and on effect recordings, at the clip's ends (its first
 and last used frames) and inside; then each recording's frames that the stricter threshold adds,
-with the channels that take them. Writes the counts to results/jump_channels.json.
+with the channels that take them. Writes the counts to results/jump_channels.json. With
+``--one-at-a-time``, the frames ``jump_outliers`` leaves out one at a time against at once, and
+the runs whose frames that changes (results/jump_one_at_a_time.json).
 """
 
 from __future__ import annotations
@@ -35,6 +37,11 @@ def main(argv: list[str]) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sigmas", type=float, nargs="+", default=[6.0, 4.0])
     parser.add_argument("--sets", nargs="+", default=None, help="set folders (default: every one with scores)")
+    parser.add_argument("--one-at-a-time", action="store_true",
+                        help="also the frames left out one at a time, and the runs that changes "
+                             "(results/jump_one_at_a_time.json)")
+    parser.add_argument("--default", default="_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12",
+                        help="the stored default's results suffix, against which the frames at once are checked")
     args = parser.parse_args(argv)
     files = sorted((HERE / "results").glob("diagnose_jump-scores_*.json"))
     rows = {}
@@ -87,6 +94,51 @@ def main(argv: list[str]) -> None:
                                                           and row["scores"][c][k] > low))
                 print(f"{set_name:20s} {name:22s} " + "; ".join(parts))
     (HERE / "results" / "jump_channels.json").write_text(json.dumps(counts, indent=1))
+    if args.one_at_a_time:
+        changed = one_at_a_time(rows, args.sigmas, args.default)
+        (HERE / "results" / "jump_one_at_a_time.json").write_text(json.dumps(changed, indent=1))
+
+
+def one_at_a_time(rows: dict, thresholds: list[float], default: str) -> dict:
+    """Per threshold, the frames ``jump_outliers`` leaves out at once and one at a time from the
+    stored channels, checked at once against the stored runs' ``outlier_frames`` (at 6 sigmas the
+    default's results folder ``default``, at another S its ``_jump<S>``; a stored run missing is
+    not checked), and the recordings whose frames one at a time changes."""
+    import numpy as np
+
+    from torchfit.discover_video import CHANNELS as ALL, JUMP_SIGMAS, jump_outliers
+
+    out = {}
+    for sigmas in thresholds:
+        suffix = default + ("" if sigmas == JUMP_SIGMAS else f"_jump{sigmas:g}")
+        changed, checked, frames_at_once, frames_one = [], 0, 0, 0
+        for (set_name, name), row in sorted(rows.items()):
+            if "values" not in row:
+                sys.exit(f"{set_name}/{name}: its scores were stored without the channels; run diagnose.py "
+                         "jump-scores on it again")
+            used = np.array([v is not None for v in row["values"]["centroid_x"]])
+            frames = np.array(row["frames"])[used]
+            values = {c: np.array([v for v in row["values"][c] if v is not None], dtype=float) for c in ALL}
+            at_once = [int(f) for f in frames[jump_outliers(values, sigmas)[0]]]
+            one = [int(f) for f in frames[jump_outliers(values, sigmas, one_at_a_time=True)[0]]]
+            fresh = set_name.removeprefix("recordings")
+            stored = HERE / "results" / f"concealed{fresh}{suffix}" / name / "discover.json"
+            if stored.exists():
+                kept = json.loads(stored.read_text())["outlier_frames"]
+                if kept != at_once:
+                    sys.exit(f"{set_name}/{name} at {sigmas:g}: at once {at_once}, stored {kept}: the channels "
+                             "do not reproduce the stored run")
+                checked += 1
+            frames_at_once, frames_one = frames_at_once + len(at_once), frames_one + len(one)
+            if one != at_once:
+                changed.append({"set": set_name, "name": name, "at_once": at_once, "one_at_a_time": one})
+        print(f"\n== {sigmas:g} sigmas: {len(changed)} of {len(rows)} runs change one at a time "
+              f"({frames_at_once} frames left out at once, {frames_one} one at a time; "
+              f"{checked} stored runs reproduced at once)")
+        for row in changed:
+            print(f"{row['set']:20s} {row['name']:22s} at once {row['at_once']}  one at a time {row['one_at_a_time']}")
+        out[f"{sigmas:g}"] = changed
+    return out
 
 
 if __name__ == "__main__":
