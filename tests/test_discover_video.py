@@ -1275,7 +1275,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     (in [0, SPEED_NOISE_MAX]) in discover.json; off, none is recorded; not a boolean, refused.
     ``params.robust``: a positive number is recorded and said in the report; zero or a word,
     refused with the key named. ``params.jump_sigmas``: the default 6 is recorded; zero, a
-    negative number, a word or a boolean, refused. (One run takes both options.)"""
+    negative number, a word or a boolean, refused; ``params.jump_one_at_a_time``: false is
+    recorded, a word or a number refused. (One run takes both options.)"""
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
 
@@ -1293,6 +1294,10 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
         cfg = _quick_discover(f"params.jump_sigmas={bad}")
         with pytest.raises(ConfigError, match=f"(?i)params.jump_sigmas must be a positive number .* got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_jump_{bad}")
+    for bad in ("often", "1"):
+        cfg = _quick_discover(f"params.jump_one_at_a_time={bad}")
+        with pytest.raises(ConfigError, match=f"params.jump_one_at_a_time must be true or false, got '?{bad}'?"):
+            run(cfg, tmp_path / f"bad_one_at_a_time_{bad}")
     cfg = _quick_discover("params.speed_noise=true", "params.robust=2")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
@@ -1301,6 +1306,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
     assert content["robust"] == 2.0
     assert content["jump_sigmas"] == 6.0  # the jump test's default, recorded
+    assert content["jump_one_at_a_time"] is False
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
 
 

@@ -486,6 +486,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         raise ConfigError(f"params.jump_sigmas must be a positive number of jitter standard deviations or null "
                           f"(no frame left out), got {jump_sigmas!r}")
     jump_sigmas = None if jump_sigmas is None else float(jump_sigmas)
+    jump_one_at_a_time = settings.pop("jump_one_at_a_time", False)
+    if not isinstance(jump_one_at_a_time, bool):
+        raise ConfigError(f"params.jump_one_at_a_time must be true or false, got {jump_one_at_a_time!r}")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -540,7 +543,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             robust=robust, backcast=backcast, jump_sigmas=jump_sigmas, progress=ctx["progress"])
+                             robust=robust, backcast=backcast, jump_sigmas=jump_sigmas,
+                             jump_one_at_a_time=jump_one_at_a_time, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")
