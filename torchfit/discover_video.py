@@ -176,6 +176,7 @@ def jump_outliers(channels: dict[str, np.ndarray], sigmas: float,
         if len(left) - 1 < 5:  # too few frames left to judge a line
             return ~keep, scores
 
+
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
 MIN_IOU = 0.9
 # The edge nuisance can hide a size mismatch: a wrong clock scales the flight's depth, and the
@@ -644,7 +645,9 @@ class VideoProblem:
             weighs.
         jump_one_at_a_time: leave the frames out worst first, the scores taken again over the
             frames left after each, so that a failed frame takes no neighbour with it
-            (:func:`jump_outliers`); False: every frame past the threshold at once.
+            (:func:`jump_outliers`); False: every frame past the threshold at once. An option:
+            a failure's neighbours are often off too, and on the seven concealed sets it named
+            77 of 105 against 79 (experiments/discover/HISTORY.md, forty-sixth session).
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -1509,8 +1512,9 @@ class VideoProblem:
         A frame is an outlier when, in any channel, it departs from the straight line through
         its two neighbours by more than ``jump_sigmas`` jitter standard deviations (a failed
         segmentation, e.g. a blurred first frame; None: none is): missing physics is smooth in
-        time (:func:`jump_outliers`, at once or, ``jump_one_at_a_time``, worst first). Outliers are left out of every model's criterion and listed in the report. Kept,
-        such frames cost right names even under Huber's loss (experiments/discover/HISTORY.md,
+        time (:func:`jump_outliers`, at once or, ``jump_one_at_a_time``, worst first).
+        Outliers are left out of every model's criterion and listed in the report. Kept, such
+        frames cost right names even under Huber's loss (experiments/discover/HISTORY.md,
         forty-fifth session).
         """
         with torch.no_grad():
