@@ -1487,7 +1487,8 @@ def jump_scores(folder: Path) -> dict:
            "scores": {name: [None if not np.isfinite(v) else round(float(v), 3) for v in scores]
                       for name, scores in video.jump_scores.items()}}
     used = np.isfinite(next(iter(video.jump_scores.values()))) if video.jump_scores else np.zeros(len(span), bool)
-    row["values"] = {name: [float(v) if ok else None for v, ok in zip(values, used)] for name, values in seen[0].items()}
+    row["values"] = {name: [float(v) if ok else None for v, ok in zip(values, used)]
+                     for name, values in seen[0].items()}
     row["sigma"] = {name: float(noise_floor(values[used])) for name, values in seen[0].items()}
     print(folder.parent.name, folder.name, "left out", row["outliers"],
           {int(span[i]): video.outlier_jumps(i) for i in video.outliers}, flush=True)
