@@ -149,9 +149,8 @@ def jump_outliers(channels: dict[str, np.ndarray], sigmas: float,
     where it was left out, a kept frame's in the last pass.
     """
     n = len(next(iter(channels.values()))) if channels else 0
-    floors = {name: noise_floor(values) for name, values in channels.items()}
-    tested = {name: sigma for name, sigma in floors.items()
-              if n >= 5 and np.isfinite(sigma) and sigma > 0}
+    floors = {name: noise_floor(values) for name, values in channels.items()} if n >= 5 else {}
+    tested = {name: sigma for name, sigma in floors.items() if np.isfinite(sigma) and sigma > 0}
     scores = {name: np.full(n, np.nan) for name in tested}
     keep = np.ones(n, dtype=bool)
     if not tested:

@@ -1454,11 +1454,16 @@ def jump_scores(folder: Path) -> dict:
     deviations (None: a frame not used), and the channel's residuals themselves (``values``,
     the observed minus the search's best) with their jitter floor (``sigma``,
     :func:`torchfit.residuals.noise_floor` on the used frames); the frames are the video's."""
-    from concealed import run_one
+    import concealed
 
     from torchfit.residuals import noise_floor
 
-    original, seen = dv.VideoProblem._set_noise, []
+    original, seen, spans = dv.VideoProblem._set_noise, [], []
+    discover = concealed.discover_video
+
+    def spanned(problem, observation, span, **kwargs):  # the run's own span, not a second segmentation
+        spans.append(span)
+        return discover(problem, observation, span, **kwargs)
 
     def stop(self, model):
         channels_of = self._channels_of
@@ -1472,17 +1477,17 @@ def jump_scores(folder: Path) -> dict:
         original(self, model)
         raise _NoiseSet(self)
 
-    dv.VideoProblem._set_noise = stop
+    dv.VideoProblem._set_noise, concealed.discover_video = stop, spanned
     try:
-        run_one(folder, HERE / "results" / "diagnose_jump-scores_scratch", albedo_passes=1, exposure=True,
+        concealed.run_one(folder, HERE / "results" / "diagnose_jump-scores_scratch", albedo_passes=1, exposure=True,
                 exposure_fraction=0.5, exposure_taps=0, fit_exposure=True, robust=2.0, backcast=True,
                 search_final=12)
         raise RuntimeError(f"{folder}: discover ended without setting its noise floors")
     except _NoiseSet as stopped:
         video = stopped.video
     finally:
-        dv.VideoProblem._set_noise = original
-    _, _, span = load_problem(folder, *recording_parts(folder)[1:], False, SegmentationSettings(albedo_passes=1))
+        dv.VideoProblem._set_noise, concealed.discover_video = original, discover
+    span = spans[0]
     row = {"frames": [int(f) for f in span], "outliers": [int(span[i]) for i in video.outliers],
            "scores": {name: [None if not np.isfinite(v) else round(float(v), 3) for v in scores]
                       for name, scores in video.jump_scores.items()}}

@@ -19,8 +19,12 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
+from torchfit.discover_video import JUMP_SIGMAS, jump_outliers
+from torchfit.residuals import CHANNELS
+
 HERE = Path(__file__).resolve().parent
-CHANNELS = ("centroid_x", "centroid_y", "scale", "shape", "orientation")
 
 
 def past(row: dict, sigmas: float) -> dict[int, list[str]]:
@@ -104,10 +108,6 @@ def one_at_a_time(rows: dict, thresholds: list[float], default: str) -> dict:
     stored channels, checked at once against the stored runs' ``outlier_frames`` (at 6 sigmas the
     default's results folder ``default``, at another S its ``_jump<S>``; a stored run missing is
     not checked), and the recordings whose frames one at a time changes."""
-    import numpy as np
-
-    from torchfit.discover_video import CHANNELS as ALL, JUMP_SIGMAS, jump_outliers
-
     out = {}
     for sigmas in thresholds:
         suffix = default + ("" if sigmas == JUMP_SIGMAS else f"_jump{sigmas:g}")
@@ -118,7 +118,7 @@ def one_at_a_time(rows: dict, thresholds: list[float], default: str) -> dict:
                          "jump-scores on it again")
             used = np.array([v is not None for v in row["values"]["centroid_x"]])
             frames = np.array(row["frames"])[used]
-            values = {c: np.array([v for v in row["values"][c] if v is not None], dtype=float) for c in ALL}
+            values = {c: np.array([v for v in row["values"][c] if v is not None], dtype=float) for c in CHANNELS}
             at_once = [int(f) for f in frames[jump_outliers(values, sigmas)[0]]]
             one = [int(f) for f in frames[jump_outliers(values, sigmas, one_at_a_time=True)[0]]]
             fresh = set_name.removeprefix("recordings")
