@@ -1276,7 +1276,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     ``params.robust``: a positive number is recorded and said in the report; zero or a word,
     refused with the key named. ``params.jump_sigmas``: the default 6 is recorded; zero, a
     negative number, a word or a boolean, refused; ``params.jump_one_at_a_time``: false is
-    recorded, a word or a number refused. (One run takes both options.)"""
+    recorded, a word or a number refused; ``params.jump_neighbours``: 0 is recorded, a negative or
+    fractional number, a boolean or a word refused. (One run takes both options.)"""
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
 
@@ -1298,6 +1299,11 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
         cfg = _quick_discover(f"params.jump_one_at_a_time={bad}")
         with pytest.raises(ConfigError, match=f"params.jump_one_at_a_time must be true or false, got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_one_at_a_time_{bad}")
+    for bad in ("-1", "1.5", "true", "two"):
+        cfg = _quick_discover(f"params.jump_neighbours={bad}")
+        with pytest.raises(ConfigError, match=f"(?i)params.jump_neighbours must be a whole number of frames >= 0, "
+                                              f"got '?{bad}'?"):
+            run(cfg, tmp_path / f"bad_neighbours_{bad}")
     cfg = _quick_discover("params.speed_noise=true", "params.robust=2")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
@@ -1306,7 +1312,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
     assert content["robust"] == 2.0
     assert content["jump_sigmas"] == 6.0  # the jump test's default, recorded
-    assert content["jump_one_at_a_time"] is False
+    assert content["jump_one_at_a_time"] is False and content["jump_neighbours"] == 0
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
 
 
@@ -1443,6 +1449,30 @@ def test_jump_outliers_one_at_a_time_takes_no_neighbour_with_a_failed_frame():
     assert not out.any() and scores == {}
 
 
+def test_jump_outliers_neighbours_go_with_each_frame_left_out():
+    """``neighbours=K``: the K frames on either side of each frame the test leaves out go too,
+    clipped at the clip's ends, whatever their own scores (which stay the test's); none where
+    nothing jumps. One at a time with one neighbour: the failed frames and their neighbours."""
+    from torchfit.discover_video import jump_outliers
+
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=60)
+    values[30] += 20.0
+    values[0] -= 40.0
+    one, scores = jump_outliers({"c": values}, 6.0, one_at_a_time=True)
+    assert sorted(np.flatnonzero(one)) == [0, 30]
+    wide, wide_scores = jump_outliers({"c": values}, 6.0, one_at_a_time=True, neighbours=1)
+    assert sorted(np.flatnonzero(wide)) == [0, 1, 29, 30, 31]
+    np.testing.assert_array_equal(wide_scores["c"], scores["c"])
+    assert sorted(np.flatnonzero(jump_outliers({"c": values}, 6.0, True, 2)[0])) == [0, 1, 2, 28, 29, 30, 31, 32]
+    at_once, _ = jump_outliers({"c": values}, 6.0)
+    wide_once, _ = jump_outliers({"c": values}, 6.0, neighbours=1)
+    inner = np.flatnonzero(at_once)
+    expected = {int(j) for i in inner for j in (i - 1, i, i + 1) if 0 <= j < 60}
+    assert set(np.flatnonzero(wide_once)) == expected and len(expected) > len(inner)
+    assert not jump_outliers({"c": rng.normal(size=60)}, 6.0, neighbours=3)[0].any()
+
+
 def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     """A frame whose mask sits 4 px off its neighbours' line (a failed segmentation) is left out
     of every model at the default ``jump_sigmas`` (6 jitter sigmas) and listed; with
@@ -1473,3 +1503,24 @@ def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="jump_sigmas"):
             dv.VideoProblem(problem, candidates=("time_scale",), jump_sigmas=bad)
+    # with two neighbours each side, the frames beside the jump go too, without a jump of their own
+    problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
+    problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
+    wide = dv.VideoProblem(problem, candidates=("time_scale",), jump_neighbours=2)
+    wide._set_noise(base)
+    assert set(range(8, 13)) <= set(wide.outliers) and set(wide.outliers) <= set(range(7, 14))
+    assert wide.outlier_jumps(8) == {} and int(wide.problem.used.sum()) == kept - len(wide.outliers)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="jump_neighbours"):
+            dv.VideoProblem(problem, candidates=("time_scale",), jump_neighbours=bad)
+
+
+def test_left_out_line_names_each_frames_jumps_and_its_neighbours():
+    """The report's line on left-out frames: each frame's channels and sizes, "beside a jump" for
+    a frame that went as a neighbour, nothing when no frame was left out."""
+    from torchfit.discover_video import left_out_lines
+
+    assert left_out_lines({}) == []
+    assert left_out_lines({32: {}, 33: {"centroid_y": 6.04}, 34: {"scale": 6.3, "shape": 6.1}}) == [
+        "Left out as segmentation failures (jumps off their neighbours, in jitter sigmas), frames of the "
+        "fitted span: 32: beside a jump; 33: centroid_y 6.0; 34: scale 6.3, shape 6.1."]

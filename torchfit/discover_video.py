@@ -126,8 +126,8 @@ def _jump_stencil(values: np.ndarray, sigma: float) -> np.ndarray:
     return score
 
 
-def jump_outliers(channels: dict[str, np.ndarray], sigmas: float,
-                  one_at_a_time: bool = False) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def jump_outliers(channels: dict[str, np.ndarray], sigmas: float, one_at_a_time: bool = False,
+                  neighbours: int = 0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """The jump test on residual channels of the frames in use: ``channels`` maps a channel's
     name to its (N,) values, in frame order. Each channel's jitter ``sigma`` is its
     :func:`torchfit.residuals.noise_floor` over all N frames (a channel with fewer than 5 frames,
@@ -144,6 +144,10 @@ def jump_outliers(channels: dict[str, np.ndarray], sigmas: float,
     over the gap, until none is past. A tie between an end frame and its neighbour (which the
     stencil makes whenever either jumps) goes to the end frame; its neighbour is left out
     after it only if it still jumps. So a single failed frame takes no neighbour with it.
+
+    ``neighbours`` > 0: afterwards, the ``neighbours`` frames on either side of each frame so
+    left out go too, whatever their scores (the segmentation's error is correlated from frame to
+    frame, so a failure's neighbours are suspect); their scores stay those of the test.
 
     Returns the (N,) bool outliers and, per tested channel, (N,) scores: a left-out frame's
     where it was left out, a kept frame's in the last pass.
@@ -163,17 +167,28 @@ def jump_outliers(channels: dict[str, np.ndarray], sigmas: float,
         worst = np.max(np.stack(list(current.values())), axis=0)  # (M,) each frame's largest
         if not one_at_a_time:
             keep[left[worst > sigmas]] = False
-            return ~keep, scores
+            return _widened(~keep, neighbours), scores
         k = int(np.argmax(worst))
         if k == 1 and worst[0] >= worst[1] * (1 - 1e-9):
             k = 0
         elif k == len(left) - 2 and worst[-1] >= worst[-2] * (1 - 1e-9):
             k = len(left) - 1
         if worst[k] <= sigmas:
-            return ~keep, scores
+            return _widened(~keep, neighbours), scores
         keep[left[k]] = False
         if len(left) - 1 < 5:  # too few frames left to judge a line
-            return ~keep, scores
+            return _widened(~keep, neighbours), scores
+
+
+def _widened(outliers: np.ndarray, neighbours: int) -> np.ndarray:
+    """(N,) bool ``outliers`` with the ``neighbours`` frames on either side of each added."""
+    if neighbours <= 0 or not outliers.any():
+        return outliers
+    wide = outliers.copy()
+    for shift in range(1, neighbours + 1):
+        wide[shift:] |= outliers[:-shift]
+        wide[:-shift] |= outliers[shift:]
+    return wide
 
 
 # Below this mean IoU (fitted frames) of the final model the verdict is withheld.
@@ -647,6 +662,8 @@ class VideoProblem:
             (:func:`jump_outliers`); False: every frame past the threshold at once. An option:
             a failure's neighbours are often off too, and on the seven concealed sets it named
             77 of 105 against 79 (experiments/discover/HISTORY.md, forty-sixth session).
+        jump_neighbours: also leave out this many frames on either side of each frame the test
+            leaves out, whatever their own scores (:func:`jump_outliers`); 0: none.
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -664,13 +681,16 @@ class VideoProblem:
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
                  backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                 jump_one_at_a_time: bool = False, progress: Callable[[str], None] | None = None):
+                 jump_one_at_a_time: bool = False, jump_neighbours: int = 0,
+                 progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
             raise ValueError(f"effects {unknown} cannot be discovered from video; choose from {list(VIDEO_EFFECTS)}")
         if jump_sigmas is not None and not (math.isfinite(jump_sigmas) and jump_sigmas > 0):
             raise ValueError(f"jump_sigmas must be a positive number of jitter standard deviations or None, "
                              f"got {jump_sigmas}")
+        if isinstance(jump_neighbours, bool) or not isinstance(jump_neighbours, int) or jump_neighbours < 0:
+            raise ValueError(f"jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
             raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
         if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
@@ -748,6 +768,7 @@ class VideoProblem:
         self.jump_scores: dict[str, np.ndarray] = {}
         self.jump_sigmas = jump_sigmas
         self.jump_one_at_a_time = jump_one_at_a_time
+        self.jump_neighbours = jump_neighbours
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
         # a sphere's orientation and spin (6) are in the state but no silhouette shows them
@@ -1481,7 +1502,8 @@ class VideoProblem:
 
     def outlier_jumps(self, frame: int) -> dict[str, float]:
         """The channels in which ``frame`` (of the span) jumps past ``jump_sigmas``, and by how
-        many jitter standard deviations (:meth:`_set_noise`), largest first."""
+        many jitter standard deviations (:meth:`_set_noise`), largest first; empty for a frame
+        left out only as a jump's neighbour (``jump_neighbours``)."""
         past = {name: float(scores[frame]) for name, scores in self.jump_scores.items()
                 if self.jump_sigmas is not None and scores[frame] > self.jump_sigmas}
         return dict(sorted(past.items(), key=lambda item: -item[1]))
@@ -1532,7 +1554,7 @@ class VideoProblem:
         self.jump_scores = {}
         if self.jump_sigmas is not None:  # None: the test is off
             left_out, scores = jump_outliers({name: channels[name][idx] for name in CHANNELS}, self.jump_sigmas,
-                                             self.jump_one_at_a_time)
+                                             self.jump_one_at_a_time, self.jump_neighbours)
             outliers[idx[left_out]] = True
             for name, score in scores.items():
                 self.jump_scores[name] = np.full(len(used), np.nan)
@@ -1657,6 +1679,18 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
     plt.close(fig)
 
 
+def left_out_lines(jumps: dict[int, dict[str, float]]) -> list[str]:
+    """The report's line on the frames left out as segmentation failures: ``jumps`` maps each
+    (a frame of the fitted span) to its channels' jumps in jitter sigmas
+    (:meth:`VideoProblem.outlier_jumps`; empty for a frame that went only as a jump's neighbour)."""
+    if not jumps:
+        return []
+    text = "; ".join(f"{frame}: " + (", ".join(f"{k} {v:.1f}" for k, v in channels.items()) or "beside a jump")
+                     for frame, channels in jumps.items())
+    return [f"Left out as segmentation failures (jumps off their neighbours, in jitter sigmas), frames of the "
+            f"fitted span: {text}."]
+
+
 def discover_video(problem: Problem, observation, span: np.ndarray, *, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
                    iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
@@ -1664,7 +1698,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
                    backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                   jump_one_at_a_time: bool = False, progress: Callable[[str], None] | None = None) -> dict:
+                   jump_one_at_a_time: bool = False, jump_neighbours: int = 0,
+                   progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
     Args:
@@ -1700,6 +1735,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
             none are.
         jump_one_at_a_time: those frames worst first, each time taken again over the frames
             left (see :class:`VideoProblem`).
+        jump_neighbours: also this many frames on either side of each (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1717,7 +1753,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          fit_exposure=fit_exposure, point_spread=point_spread,
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
                          heldout_deviance=settings.heldout_margin is not None, robust=robust, backcast=backcast,
-                         jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time, progress=say)
+                         jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time,
+                         jump_neighbours=jump_neighbours, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1765,6 +1802,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise_speed_share": video.speed_share if speed_noise else None,
         "robust": robust, "backcast": backcast, "jump_sigmas": jump_sigmas,
         "jump_one_at_a_time": jump_one_at_a_time,
+        "jump_neighbours": jump_neighbours,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,
@@ -2134,11 +2172,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     lines += prediction_line(predicted)
     lines += size_mismatch_lines(mismatch, selection.verdict)
-    if video.outliers:
-        jumps = "; ".join(f"{i}: " + ", ".join(f"{k} {v:.1f}" for k, v in video.outlier_jumps(i).items())
-                          for i in video.outliers)
-        lines.append(f"Left out as segmentation failures (jumps off their neighbours, in jitter sigmas), frames "
-                     f"of the fitted span: {jumps}.")
+    lines += left_out_lines({i: video.outlier_jumps(i) for i in video.outliers})
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape),
                          no_size={name: "a ball's lift is the vector C_L w, and the video does not see its spin"
                                   for name in traded})

@@ -93,7 +93,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             shading_fit: str | None = None, speed_noise: bool = False,
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
             backcast: bool = False, search_final: int | None = None,
-            jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False) -> dict:
+            jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
+            jump_neighbours: int = 0) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -111,6 +112,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
                           speed_noise=speed_noise, robust=robust, backcast=backcast,
                           jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time,
+                          jump_neighbours=jump_neighbours,
                           search=SearchSettings() if search_final is None else SearchSettings(final=search_final))
 
 
@@ -120,14 +122,16 @@ def robust_suffix(robust: float | None) -> str:
     return "" if robust is None else f"_huber{robust:g}"
 
 
-def jump_suffix(jump_sigmas: float | None, one_at_a_time: bool = False) -> str:
+def jump_suffix(jump_sigmas: float | None, one_at_a_time: bool = False, neighbours: int = 0) -> str:
     """The results folder's suffix of a run whose jump test leaves frames out at ``jump_sigmas``
     jitter standard deviations (``discover_video(jump_sigmas=...)``): none at the default
     (``JUMP_SIGMAS``), ``_nojump`` where no frame is left out (None), else ``_jump<S>``; then
-    ``_1by1`` where they are left out worst first (``jump_one_at_a_time``)."""
+    ``_1by1`` where they are left out worst first (``jump_one_at_a_time``), and ``_nb<K>`` where
+    K frames on either side of each go with it (``jump_neighbours``)."""
     if jump_sigmas is None:
         return "_nojump"
-    return ("" if jump_sigmas == JUMP_SIGMAS else f"_jump{jump_sigmas:g}") + ("_1by1" if one_at_a_time else "")
+    return (("" if jump_sigmas == JUMP_SIGMAS else f"_jump{jump_sigmas:g}") + ("_1by1" if one_at_a_time else "")
+            + (f"_nb{neighbours}" if neighbours else ""))
 
 
 def backcast_suffix(backcast: bool) -> str:
@@ -836,7 +840,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
          search_final: int | None = None, scale: int = 1, fps_scale: int = 1,
-         jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False) -> None:
+         jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
+         jump_neighbours: int = 0) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
     recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
@@ -849,7 +854,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + final_suffix(search_final) + jump_suffix(jump_sigmas, jump_one_at_a_time))
+                + final_suffix(search_final) + jump_suffix(jump_sigmas, jump_one_at_a_time, jump_neighbours))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -881,7 +886,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
                           backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas,
-                          jump_one_at_a_time=jump_one_at_a_time)
+                          jump_one_at_a_time=jump_one_at_a_time, jump_neighbours=jump_neighbours)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -980,6 +985,9 @@ if __name__ == "__main__":
                     help="the jump test leaves frames out worst first, taking the scores again after each, so a "
                          "failed frame takes no neighbour with it (discover_video(jump_one_at_a_time=True); "
                          "results/concealed..._1by1/)")
+    ap.add_argument("--jump-neighbours", type=int, default=0, metavar="K",
+                    help="the jump test also leaves out the K frames on either side of each frame it leaves out "
+                         "(discover_video(jump_neighbours=K); results/concealed..._nb<K>/)")
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
@@ -1014,8 +1022,13 @@ if __name__ == "__main__":
         ap.error("--no-jump-test leaves no frame out: not with --jump-sigmas")
     if args.no_jump_test and args.jump_one_at_a_time:
         ap.error("--no-jump-test leaves no frame out: not with --jump-one-at-a-time")
+    if args.jump_neighbours < 0:
+        ap.error(f"--jump-neighbours needs a whole number of frames >= 0, got {args.jump_neighbours}")
+    if args.no_jump_test and args.jump_neighbours:
+        ap.error("--no-jump-test leaves no frame out: not with --jump-neighbours")
     jump_sigmas = None if args.no_jump_test else args.jump_sigmas
-    variant += final_suffix(args.search_final) + jump_suffix(jump_sigmas, args.jump_one_at_a_time)
+    variant += final_suffix(args.search_final) + jump_suffix(jump_sigmas, args.jump_one_at_a_time,
+                                                             args.jump_neighbours)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -1155,4 +1168,5 @@ if __name__ == "__main__":
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
-         fps_scale=args.fps_scale, jump_sigmas=jump_sigmas, jump_one_at_a_time=args.jump_one_at_a_time)
+         fps_scale=args.fps_scale, jump_sigmas=jump_sigmas, jump_one_at_a_time=args.jump_one_at_a_time,
+         jump_neighbours=args.jump_neighbours)

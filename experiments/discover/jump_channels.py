@@ -1,15 +1,16 @@
 """Which channel makes the jump test leave a frame out, at 6 jitter sigmas and at a stricter
 threshold (HISTORY.md, *Forty-sixth session*).
 
-    python experiments/discover/jump_channels.py [--sigmas 6 4] [--sets recordings recordings_fresh6 ...] [--one-at-a-time]
+    python experiments/discover/jump_channels.py [--sigmas 6 4] [--sets recordings recordings_fresh6 ...] [--one-at-a-time] [--neighbours K]
 
 Reads ``results/diagnose_jump-scores_<set>_<name>.json`` (``diagnose.py jump-scores SET NAME...``)
 and prints, per threshold, how many frames each channel leaves out (a frame counts once per
 channel past the threshold), on controls and on effect recordings, at the clip's ends (its first
 and last used frames) and inside; then each recording's frames that the stricter threshold adds,
 with the channels that take them. Writes the counts to results/jump_channels.json. With
-``--one-at-a-time``, the frames ``jump_outliers`` leaves out one at a time against at once, and
-the runs whose frames that changes (results/jump_one_at_a_time.json).
+``--one-at-a-time`` and/or ``--neighbours K``, the frames ``jump_outliers`` leaves out so (one at
+a time; with the K frames on either side of each) against at once, and the runs whose frames that
+changes (results/jump_one_at_a_time.json, jump_neighbours<K>.json, jump_one_at_a_time_neighbours<K>.json).
 """
 
 from __future__ import annotations
@@ -44,6 +45,9 @@ def main(argv: list[str]) -> None:
     parser.add_argument("--one-at-a-time", action="store_true",
                         help="also the frames left out one at a time, and the runs that changes "
                              "(results/jump_one_at_a_time.json)")
+    parser.add_argument("--neighbours", type=int, default=0, metavar="K",
+                        help="also the frames left out with the K frames on either side of each, and the runs "
+                             "that changes (results/jump_neighbours<K>.json)")
     parser.add_argument("--default", default="_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12",
                         help="the stored default's results suffix, against which the frames at once are checked")
     args = parser.parse_args(argv)
@@ -98,16 +102,22 @@ def main(argv: list[str]) -> None:
                                                           and row["scores"][c][k] > low))
                 print(f"{set_name:20s} {name:22s} " + "; ".join(parts))
     (HERE / "results" / "jump_channels.json").write_text(json.dumps(counts, indent=1))
-    if args.one_at_a_time:
-        changed = one_at_a_time(rows, args.sigmas, args.default)
-        (HERE / "results" / "jump_one_at_a_time.json").write_text(json.dumps(changed, indent=1))
+    if args.one_at_a_time or args.neighbours:
+        changed = against_at_once(rows, args.sigmas, args.default, args.one_at_a_time, args.neighbours)
+        name = "_".join((["one_at_a_time"] if args.one_at_a_time else [])
+                        + ([f"neighbours{args.neighbours}"] if args.neighbours else []))
+        (HERE / "results" / f"jump_{name}.json").write_text(json.dumps(changed, indent=1))
 
 
-def one_at_a_time(rows: dict, thresholds: list[float], default: str) -> dict:
-    """Per threshold, the frames ``jump_outliers`` leaves out at once and one at a time from the
-    stored channels, checked at once against the stored runs' ``outlier_frames`` (at 6 sigmas the
-    default's results folder ``default``, at another S its ``_jump<S>``; a stored run missing is
-    not checked), and the recordings whose frames one at a time changes."""
+def against_at_once(rows: dict, thresholds: list[float], default: str, one_at_a_time: bool,
+                    neighbours: int) -> dict:
+    """Per threshold, the frames ``jump_outliers`` leaves out at once and as the candidate does
+    (``one_at_a_time``, ``neighbours``) from the stored channels, checked at once against the
+    stored runs' ``outlier_frames`` (at 6 sigmas the default's results folder ``default``, at
+    another S its ``_jump<S>``; a stored run missing is not checked), and the recordings whose
+    frames the candidate changes."""
+    label = " and ".join((["one at a time"] if one_at_a_time else [])
+                         + ([f"with {neighbours} neighbour(s) each side"] if neighbours else []))
     out = {}
     for sigmas in thresholds:
         suffix = default + ("" if sigmas == JUMP_SIGMAS else f"_jump{sigmas:g}")
@@ -120,7 +130,7 @@ def one_at_a_time(rows: dict, thresholds: list[float], default: str) -> dict:
             frames = np.array(row["frames"])[used]
             values = {c: np.array([v for v in row["values"][c] if v is not None], dtype=float) for c in CHANNELS}
             at_once = [int(f) for f in frames[jump_outliers(values, sigmas)[0]]]
-            one = [int(f) for f in frames[jump_outliers(values, sigmas, one_at_a_time=True)[0]]]
+            one = [int(f) for f in frames[jump_outliers(values, sigmas, one_at_a_time, neighbours)[0]]]
             fresh = set_name.removeprefix("recordings")
             stored = HERE / "results" / f"concealed{fresh}{suffix}" / name / "discover.json"
             if stored.exists():
@@ -131,12 +141,12 @@ def one_at_a_time(rows: dict, thresholds: list[float], default: str) -> dict:
                 checked += 1
             frames_at_once, frames_one = frames_at_once + len(at_once), frames_one + len(one)
             if one != at_once:
-                changed.append({"set": set_name, "name": name, "at_once": at_once, "one_at_a_time": one})
-        print(f"\n== {sigmas:g} sigmas: {len(changed)} of {len(rows)} runs change one at a time "
-              f"({frames_at_once} frames left out at once, {frames_one} one at a time; "
+                changed.append({"set": set_name, "name": name, "at_once": at_once, "candidate": one})
+        print(f"\n== {sigmas:g} sigmas: {len(changed)} of {len(rows)} runs change {label} "
+              f"({frames_at_once} frames left out at once, {frames_one} {label}; "
               f"{checked} stored runs reproduced at once)")
         for row in changed:
-            print(f"{row['set']:20s} {row['name']:22s} at once {row['at_once']}  one at a time {row['one_at_a_time']}")
+            print(f"{row['set']:20s} {row['name']:22s} at once {row['at_once']}  {label} {row['candidate']}")
         out[f"{sigmas:g}"] = changed
     return out
 
