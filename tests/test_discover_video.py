@@ -1313,6 +1313,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert content["robust"] == 2.0
     assert content["jump_sigmas"] == 6.0  # the jump test's default, recorded
     assert content["jump_one_at_a_time"] is False and content["jump_neighbours"] == 0
+    first, last = content["span_frames"]
+    assert 0 <= first < last and set(content["criterion_frames"]) <= set(range(first, last + 1))
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
 
 
@@ -1524,3 +1526,12 @@ def test_left_out_line_names_each_frames_jumps_and_its_neighbours():
     assert left_out_lines({32: {}, 33: {"centroid_y": 6.04}, 34: {"scale": 6.3, "shape": 6.1}}) == [
         "Left out as segmentation failures (jumps off their neighbours, in jitter sigmas), frames of the "
         "fitted span: 32: beside a jump; 33: centroid_y 6.0; 34: scale 6.3, shape 6.1."]
+
+
+def test_span_line_says_where_the_reports_frame_numbers_start():
+    """A span from the video's frame 0 needs no line; a later one says its first video frame."""
+    from torchfit.discover_video import span_lines
+
+    assert span_lines(0) == []
+    (line,) = span_lines(12)
+    assert "video frame 12" in line and "discover.json" in line

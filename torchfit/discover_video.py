@@ -1679,6 +1679,16 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
     plt.close(fig)
 
 
+def span_lines(first: int) -> list[str]:
+    """The report's line that says where its frame numbers start, when the fitted span starts
+    after the video's frame 0 (``first``): the report counts from the span's start, while
+    ``discover.json``'s frame lists use the video's numbers."""
+    if first == 0:
+        return []
+    return [f"Frame numbers in this report count from the fitted span's first frame, video frame {first}; "
+            f"discover.json's frame lists (outlier_frames, criterion_frames, ...) use the video's numbers."]
+
+
 def left_out_lines(jumps: dict[int, dict[str, float]]) -> list[str]:
     """The report's line on the frames left out as segmentation failures: ``jumps`` maps each
     (a frame of the fitted span) to its channels' jumps in jitter sigmas
@@ -1848,10 +1858,12 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     withheld = selection.verdict and content["iou_final"]["mean_fitted"] < MIN_IOU
     if withheld:
         content["verdict_withheld"], content["verdict"] = content["verdict"], []
+    content["span_frames"] = [int(span[0]), int(span[-1])]  # the video's first and last frames in the fit
     content["report"] = report = _report_lines(selection, chain, located, video,
                                                content["iou_final"]["mean_fitted"] if withheld else None,
                                                None if withheld else unexplained, content["size_mismatch"],
-                                               content["iou_baseline"]["mean_fitted"], located_heldout)
+                                               content["iou_baseline"]["mean_fitted"],
+                                               located_heldout) + span_lines(int(span[0]))
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)
