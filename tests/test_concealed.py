@@ -774,6 +774,7 @@ def test_results_folders_carry_their_settings_on_every_set():
     assert conc.jump_suffix(4.0) == "_jump4"
     assert conc.jump_suffix(conc.JUMP_SIGMAS, True) == "_1by1" and conc.jump_suffix(4.0, True) == "_jump4_1by1"
     assert conc.jump_suffix(conc.JUMP_SIGMAS, False, 1) == "_nb1" and conc.jump_suffix(4.0, True, 2) == "_jump4_1by1_nb2"
+    assert conc.jump_suffix(conc.JUMP_SIGMAS, refined=True) == "_refj"
 
 
 def test_blur_estimates_recover_a_known_exposure():

@@ -1277,7 +1277,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     refused with the key named. ``params.jump_sigmas``: the default 6 is recorded; zero, a
     negative number, a word or a boolean, refused; ``params.jump_one_at_a_time``: false is
     recorded, a word or a number refused; ``params.jump_neighbours``: 0 is recorded, a negative or
-    fractional number, a boolean or a word refused. (One run takes both options.)"""
+    fractional number, a boolean or a word refused; ``params.jump_refined``: true is recorded, a
+    word or a number refused. (One run takes the options.)"""
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
 
@@ -1304,7 +1305,11 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
         with pytest.raises(ConfigError, match=f"(?i)params.jump_neighbours must be a whole number of frames >= 0, "
                                               f"got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_neighbours_{bad}")
-    cfg = _quick_discover("params.speed_noise=true", "params.robust=2")
+    for bad in ("often", "1"):
+        cfg = _quick_discover(f"params.jump_refined={bad}")
+        with pytest.raises(ConfigError, match=f"params.jump_refined must be true or false, got '?{bad}'?"):
+            run(cfg, tmp_path / f"bad_refined_{bad}")
+    cfg = _quick_discover("params.speed_noise=true", "params.robust=2", "params.jump_refined=true")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())
     assert 0.0 <= content["noise_speed_share"] <= SPEED_NOISE_MAX
@@ -1313,6 +1318,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert content["robust"] == 2.0
     assert content["jump_sigmas"] == 6.0  # the jump test's default, recorded
     assert content["jump_one_at_a_time"] is False and content["jump_neighbours"] == 0
+    assert content["jump_refined"] is True  # the test judged on the refitted baseline: the fit's path runs
     first, last = content["span_frames"]
     assert 0 <= first < last and set(content["criterion_frames"]) <= set(range(first, last + 1))
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
@@ -1515,6 +1521,19 @@ def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     for bad in (-1, 1.5, True):
         with pytest.raises(ValueError, match="jump_neighbours"):
             dv.VideoProblem(problem, candidates=("time_scale",), jump_neighbours=bad)
+    # judged on another model (jump_refined's refit): the scores are that model's, the floors
+    # still the first's; a flight launched 5 % faster bends the line but does not hide the jump
+    problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
+    problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
+    judged = dv.VideoProblem(problem, candidates=("time_scale",))
+    other = truth.select(torch.zeros(1, dtype=torch.long))
+    other.com_velocity.mul_(1.05)
+    judged._set_noise(base, judge=dv._Model(other, {}))
+    assert 10 in judged.outliers
+    if judged.outliers == flagged.outliers:  # the same frames left out: the same floors
+        assert judged.noise == flagged.noise
+    assert not np.allclose(np.nan_to_num(judged.jump_scores["centroid_x"]),
+                           np.nan_to_num(flagged.jump_scores["centroid_x"]))
 
 
 def test_left_out_line_names_each_frames_jumps_and_its_neighbours():

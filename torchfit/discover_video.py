@@ -664,6 +664,10 @@ class VideoProblem:
             77 of 105 against 79 (experiments/discover/HISTORY.md, forty-sixth session).
         jump_neighbours: also leave out this many frames on either side of each frame the test
             leaves out, whatever their own scores (:func:`jump_outliers`); 0: none.
+        jump_refined: judge the jump test on the baseline refitted to every frame (Levenberg-
+            Marquardt from the search's best) instead of on the search's best, whose residuals
+            an imperfect start can bend; the baseline is then fitted again from the search's
+            best without those frames. False: on the search's best (:meth:`fit`).
         progress: one-line status messages.
 
     The refits and residuals take the silhouettes' moments exactly, from the polygon
@@ -681,7 +685,7 @@ class VideoProblem:
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
                  backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                 jump_one_at_a_time: bool = False, jump_neighbours: int = 0,
+                 jump_one_at_a_time: bool = False, jump_neighbours: int = 0, jump_refined: bool = False,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
@@ -691,6 +695,8 @@ class VideoProblem:
                              f"got {jump_sigmas}")
         if isinstance(jump_neighbours, bool) or not isinstance(jump_neighbours, int) or jump_neighbours < 0:
             raise ValueError(f"jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
+        if not isinstance(jump_refined, bool):
+            raise ValueError(f"jump_refined must be True or False, got {jump_refined!r}")
         if not (math.isfinite(edge_px) and edge_px >= 0):
             raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
         if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
@@ -769,6 +775,7 @@ class VideoProblem:
         self.jump_sigmas = jump_sigmas
         self.jump_one_at_a_time = jump_one_at_a_time
         self.jump_neighbours = jump_neighbours
+        self.jump_refined = jump_refined
         self.noise_var = 1.0  # residuals are divided by their noise floors
         self.area = float(problem.shape.reference_area)
         # a sphere's orientation and spin (6) are in the state but no silhouette shows them
@@ -1436,7 +1443,17 @@ class VideoProblem:
         everything = self.problem.used.cpu().numpy().astype(bool)
         result = fit(self.search_problem, self.search, progress=None) if searched is None else searched
         starts = self.search_starts(result, self.baseline_starts)
-        self._set_noise(starts[0])
+        if self.jump_refined and self.jump_sigmas is not None:
+            # the floors without the test, a refit on every frame, the test on that refit; then
+            # the floors after leaving its frames out, and the baseline's fit without them
+            sigmas, self.jump_sigmas = self.jump_sigmas, None
+            self._set_noise(starts[0])
+            self.jump_sigmas = sigmas
+            ended = self._lm_many(starts, everything, self.iterations)
+            self._set_noise(starts[0], judge=min(ended, key=lambda run: self._cost(run[1]))[0])
+            everything = self.problem.used.cpu().numpy().astype(bool)
+        else:
+            self._set_noise(starts[0])
         ended = self._lm_many(starts, everything, self.iterations)
         model, resid, jac = min(ended, key=lambda run: self._cost(run[1]))
         if len(ended) > 1:
@@ -1519,9 +1536,9 @@ class VideoProblem:
         radius, rho = float(np.hypot(*offset[far])), float(np.hypot(*normalised[far]))
         return radius, (radius / rho if rho > 0 else float(camera.fx))
 
-    def _set_noise(self, model: _Model) -> None:
+    def _set_noise(self, model: _Model, judge: _Model | None = None) -> None:
         """The edge nuisance's table, then noise floors from the baseline's residuals, after
-        leaving out outlier frames.
+        leaving out outlier frames (judged on ``judge``'s residuals, ``model``'s when None).
 
         The table's axis and elongation per frame (the second term's, :func:`normal_axis_angle`)
         are those of ``model``'s silhouettes, fixed from here on: the object's shape as the
@@ -1546,6 +1563,10 @@ class VideoProblem:
             if self.coverage_shift is not None:
                 self.edge_table = self.edge_table + self.coverage_shift
             channels = {k: v[0].cpu().numpy() for k, v in self._channels_of(fitted, model.nuisances).items()}
+            judged = channels
+            if judge is not None:
+                moments = self._fitted_moments(judge.cands, self.effects(judge.values), self._fraction(judge.nuisances))
+                judged = {k: v[0].cpu().numpy() for k, v in self._channels_of(moments, judge.nuisances).items()}
             centroids = _moments_at(self.edge_table, model.nuisances)[1].cpu().numpy()
         used = self.problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
@@ -1553,7 +1574,7 @@ class VideoProblem:
         outliers = np.zeros_like(used)
         self.jump_scores = {}
         if self.jump_sigmas is not None:  # None: the test is off
-            left_out, scores = jump_outliers({name: channels[name][idx] for name in CHANNELS}, self.jump_sigmas,
+            left_out, scores = jump_outliers({name: judged[name][idx] for name in CHANNELS}, self.jump_sigmas,
                                              self.jump_one_at_a_time, self.jump_neighbours)
             outliers[idx[left_out]] = True
             for name, score in scores.items():
@@ -1708,7 +1729,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
                    backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                   jump_one_at_a_time: bool = False, jump_neighbours: int = 0,
+                   jump_one_at_a_time: bool = False, jump_neighbours: int = 0, jump_refined: bool = False,
                    progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 
@@ -1746,6 +1767,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         jump_one_at_a_time: those frames worst first, each time taken again over the frames
             left (see :class:`VideoProblem`).
         jump_neighbours: also this many frames on either side of each (see :class:`VideoProblem`).
+        jump_refined: the test judged on the baseline refitted to every frame (see :class:`VideoProblem`).
 
     Returns:
         The ``discover.json`` content: ``verdict``, ``effects``, ``located``, ``report`` and more.
@@ -1764,7 +1786,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                          baseline_starts=baseline_starts, speed_noise=speed_noise,
                          heldout_deviance=settings.heldout_margin is not None, robust=robust, backcast=backcast,
                          jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time,
-                         jump_neighbours=jump_neighbours, progress=say)
+                         jump_neighbours=jump_neighbours, jump_refined=jump_refined, progress=say)
     selection = select_effects(video, settings, say)
     labelled = selection.chain()
     chain = [fit for _, fit in labelled]
@@ -1812,7 +1834,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "noise_speed_share": video.speed_share if speed_noise else None,
         "robust": robust, "backcast": backcast, "jump_sigmas": jump_sigmas,
         "jump_one_at_a_time": jump_one_at_a_time,
-        "jump_neighbours": jump_neighbours,
+        "jump_neighbours": jump_neighbours, "jump_refined": jump_refined,
         "exposure": None if exposure is None else asdict(exposure),
         "exposure_fitted": [f.payload.get("exposure") for f in chain] if fit_exposure else None,
         "baseline_starts": baseline_starts,

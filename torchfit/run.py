@@ -492,6 +492,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     jump_neighbours = settings.pop("jump_neighbours", 0)
     if isinstance(jump_neighbours, bool) or not isinstance(jump_neighbours, int) or jump_neighbours < 0:
         raise ConfigError(f"params.jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
+    jump_refined = settings.pop("jump_refined", False)
+    if not isinstance(jump_refined, bool):
+        raise ConfigError(f"params.jump_refined must be true or false, got {jump_refined!r}")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
@@ -548,7 +551,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                              exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
                              robust=robust, backcast=backcast, jump_sigmas=jump_sigmas,
                              jump_one_at_a_time=jump_one_at_a_time, jump_neighbours=jump_neighbours,
-                             progress=ctx["progress"])
+                             jump_refined=jump_refined, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     print("\n".join(summary["report"]))
     print(f"discover: verdict {summary['verdict']}; outputs in {out_dir}")

@@ -94,7 +94,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
             backcast: bool = False, search_final: int | None = None,
             jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
-            jump_neighbours: int = 0) -> dict:
+            jump_neighbours: int = 0, jump_refined: bool = False) -> dict:
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -112,7 +112,7 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                           fit_exposure=fit_exposure, point_spread=point_spread, baseline_starts=baseline_starts,
                           speed_noise=speed_noise, robust=robust, backcast=backcast,
                           jump_sigmas=jump_sigmas, jump_one_at_a_time=jump_one_at_a_time,
-                          jump_neighbours=jump_neighbours,
+                          jump_neighbours=jump_neighbours, jump_refined=jump_refined,
                           search=SearchSettings() if search_final is None else SearchSettings(final=search_final))
 
 
@@ -122,16 +122,18 @@ def robust_suffix(robust: float | None) -> str:
     return "" if robust is None else f"_huber{robust:g}"
 
 
-def jump_suffix(jump_sigmas: float | None, one_at_a_time: bool = False, neighbours: int = 0) -> str:
+def jump_suffix(jump_sigmas: float | None, one_at_a_time: bool = False, neighbours: int = 0,
+                refined: bool = False) -> str:
     """The results folder's suffix of a run whose jump test leaves frames out at ``jump_sigmas``
     jitter standard deviations (``discover_video(jump_sigmas=...)``): none at the default
     (``JUMP_SIGMAS``), ``_nojump`` where no frame is left out (None), else ``_jump<S>``; then
-    ``_1by1`` where they are left out worst first (``jump_one_at_a_time``), and ``_nb<K>`` where
-    K frames on either side of each go with it (``jump_neighbours``)."""
+    ``_1by1`` where they are left out worst first (``jump_one_at_a_time``), ``_nb<K>`` where K
+    frames on either side of each go with it (``jump_neighbours``), and ``_refj`` where the test
+    is judged on the baseline refitted to every frame (``jump_refined``)."""
     if jump_sigmas is None:
         return "_nojump"
     return (("" if jump_sigmas == JUMP_SIGMAS else f"_jump{jump_sigmas:g}") + ("_1by1" if one_at_a_time else "")
-            + (f"_nb{neighbours}" if neighbours else ""))
+            + (f"_nb{neighbours}" if neighbours else "") + ("_refj" if refined else ""))
 
 
 def backcast_suffix(backcast: bool) -> str:
@@ -841,7 +843,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
          search_final: int | None = None, scale: int = 1, fps_scale: int = 1,
          jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
-         jump_neighbours: int = 0) -> None:
+         jump_neighbours: int = 0, jump_refined: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
     recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
@@ -854,7 +856,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + ("_speednoise" if speed_noise else "")
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
-                + final_suffix(search_final) + jump_suffix(jump_sigmas, jump_one_at_a_time, jump_neighbours))
+                + final_suffix(search_final) + jump_suffix(jump_sigmas, jump_one_at_a_time, jump_neighbours,
+                                                                      jump_refined))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -886,7 +889,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           coverage_band=coverage_band, shading_fit=shading_fit, speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
                           backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas,
-                          jump_one_at_a_time=jump_one_at_a_time, jump_neighbours=jump_neighbours)
+                          jump_one_at_a_time=jump_one_at_a_time, jump_neighbours=jump_neighbours,
+                          jump_refined=jump_refined)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -988,6 +992,9 @@ if __name__ == "__main__":
     ap.add_argument("--jump-neighbours", type=int, default=0, metavar="K",
                     help="the jump test also leaves out the K frames on either side of each frame it leaves out "
                          "(discover_video(jump_neighbours=K); results/concealed..._nb<K>/)")
+    ap.add_argument("--jump-refined", action="store_true",
+                    help="the jump test judged on the baseline refitted to every frame instead of on the search's "
+                         "best (discover_video(jump_refined=True); results/concealed..._refj/)")
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
@@ -1024,11 +1031,11 @@ if __name__ == "__main__":
         ap.error("--no-jump-test leaves no frame out: not with --jump-one-at-a-time")
     if args.jump_neighbours < 0:
         ap.error(f"--jump-neighbours needs a whole number of frames >= 0, got {args.jump_neighbours}")
-    if args.no_jump_test and args.jump_neighbours:
-        ap.error("--no-jump-test leaves no frame out: not with --jump-neighbours")
+    if args.no_jump_test and (args.jump_neighbours or args.jump_refined):
+        ap.error("--no-jump-test leaves no frame out: not with --jump-neighbours or --jump-refined")
     jump_sigmas = None if args.no_jump_test else args.jump_sigmas
     variant += final_suffix(args.search_final) + jump_suffix(jump_sigmas, args.jump_one_at_a_time,
-                                                             args.jump_neighbours)
+                                                             args.jump_neighbours, args.jump_refined)
     if args.robust is not None and not (math.isfinite(args.robust) and args.robust > 0):
         ap.error(f"--robust needs Huber's threshold in noise units, a positive number, got {args.robust}")
     if args.heldout_margin is not None and not args.heldout_margin >= 0:
@@ -1169,4 +1176,4 @@ if __name__ == "__main__":
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
          fps_scale=args.fps_scale, jump_sigmas=jump_sigmas, jump_one_at_a_time=args.jump_one_at_a_time,
-         jump_neighbours=args.jump_neighbours)
+         jump_neighbours=args.jump_neighbours, jump_refined=args.jump_refined)
