@@ -1277,7 +1277,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     refused with the key named. ``params.jump_sigmas``: the default 6 is recorded; zero, a
     negative number, a word or a boolean, refused; ``params.jump_one_at_a_time``: false is
     recorded, a word or a number refused; ``params.jump_neighbours``: 0 is recorded, a negative or
-    fractional number, a boolean or a word refused; ``params.jump_refined``: true is recorded, a
+    fractional number, a boolean or a word refused, the default 1 recorded; ``params.jump_refined``: true is recorded, a
     word or a number refused. (One run takes the options.)"""
     from torchfit.discover_video import SPEED_NOISE_MAX
     from torchfit.run import ConfigError, run
@@ -1317,7 +1317,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert any(line.startswith("Noise floors grow with the speed") for line in content["report"])
     assert content["robust"] == 2.0
     assert content["jump_sigmas"] == 6.0  # the jump test's default, recorded
-    assert content["jump_one_at_a_time"] is False and content["jump_neighbours"] == 0
+    assert content["jump_one_at_a_time"] is False and content["jump_neighbours"] == 1  # the default
     assert content["jump_refined"] is True  # the test judged on the refitted baseline: the fit's path runs
     first, last = content["span_frames"]
     assert 0 <= first < last and set(content["criterion_frames"]) <= set(range(first, last + 1))
@@ -1483,16 +1483,16 @@ def test_jump_outliers_neighbours_go_with_each_frame_left_out():
 
 def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     """A frame whose mask sits 4 px off its neighbours' line (a failed segmentation) is left out
-    of every model at the default ``jump_sigmas`` (6 jitter sigmas) and listed; with
-    ``jump_sigmas=None`` no frame is left out, the same data kept whole. A bad value is refused
-    with its name."""
+    of every model at the default ``jump_sigmas`` (6 jitter sigmas) and listed, with its
+    neighbours by default (``jump_neighbours``); with ``jump_sigmas=None`` no frame is left out,
+    the same data kept whole. A bad value is refused with its name."""
     import torchfit.discover_video as dv
 
     problem, truth = _synthetic("time_scale", {"time_scale": 1.0})
     problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)  # 4 px to the right
     base = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
     kept, used = int(problem.used.sum()), problem.used.cpu().numpy().astype(bool)
-    flagged = dv.VideoProblem(problem, candidates=("time_scale",))
+    flagged = dv.VideoProblem(problem, candidates=("time_scale",), jump_neighbours=0)
     flagged._set_noise(base)
     # the bad frame, and on these clean masks (a jitter of hundredths of a pixel) its two
     # neighbours, each half as far off the line through theirs
@@ -1511,6 +1511,13 @@ def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="jump_sigmas"):
             dv.VideoProblem(problem, candidates=("time_scale",), jump_sigmas=bad)
+    # by default (JUMP_NEIGHBOURS, one each side) the frames beside those the test takes go too
+    problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
+    problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
+    default = dv.VideoProblem(problem, candidates=("time_scale",))
+    default._set_noise(base)
+    assert dv.JUMP_NEIGHBOURS == 1 and default.jump_neighbours == 1
+    assert default.outliers == list(range(min(flagged.outliers) - 1, max(flagged.outliers) + 2))
     # with two neighbours each side, the frames beside the jump go too, without a jump of their own
     problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
     problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
@@ -1525,7 +1532,7 @@ def test_jump_test_leaves_a_failed_frame_out_and_can_be_turned_off():
     # still the first's; a flight launched 5 % faster bends the line but does not hide the jump
     problem, _ = _synthetic("time_scale", {"time_scale": 1.0})
     problem.masks[10] = torch.roll(problem.masks[10], 4, dims=1)
-    judged = dv.VideoProblem(problem, candidates=("time_scale",))
+    judged = dv.VideoProblem(problem, candidates=("time_scale",), jump_neighbours=0)
     other = truth.select(torch.zeros(1, dtype=torch.long))
     other.com_velocity.mul_(1.05)
     judged._set_noise(base, judge=dv._Model(other, {}))

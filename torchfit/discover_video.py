@@ -82,8 +82,8 @@ from .search import (
 )
 from .video import _boxes, raw_moments
 
-__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_SIGMAS",
-           "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
+__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_NEIGHBOURS",
+           "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
 
 # Effects a silhouette can see (all of the vocabulary).
 VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
@@ -111,6 +111,12 @@ FRAME_CORRELATION = 0.4
 # deviations, in any channel of the baseline's residuals, is left out as a failed segmentation
 # (VideoProblem(jump_sigmas=...), params.jump_sigmas; None: no frame is)
 JUMP_SIGMAS = 6.0
+# ...and the frames on either side of each such frame go with it, whatever their own scores: the
+# segmentation's error is correlated from frame to frame, so a failure's neighbours are suspect
+# (VideoProblem(jump_neighbours=...), params.jump_neighbours; 0: none). On the seven concealed
+# sets, one neighbour each side named 80 of 105 against 79 with none, every control quiet, no
+# wrong name (experiments/discover/HISTORY.md, forty-seventh session).
+JUMP_NEIGHBOURS = 1
 
 
 def _jump_stencil(values: np.ndarray, sigma: float) -> np.ndarray:
@@ -663,7 +669,8 @@ class VideoProblem:
             a failure's neighbours are often off too, and on the seven concealed sets it named
             77 of 105 against 79 (experiments/discover/HISTORY.md, forty-sixth session).
         jump_neighbours: also leave out this many frames on either side of each frame the test
-            leaves out, whatever their own scores (:func:`jump_outliers`); 0: none.
+            leaves out, whatever their own scores (:func:`jump_outliers`; ``JUMP_NEIGHBOURS``);
+            0: none.
         jump_refined: judge the jump test on the baseline refitted to every frame (Levenberg-
             Marquardt from the search's best) instead of on the search's best, whose residuals
             an imperfect start can bend; the baseline is then fitted again from the search's
@@ -685,7 +692,7 @@ class VideoProblem:
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
                  backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                 jump_one_at_a_time: bool = False, jump_neighbours: int = 0, jump_refined: bool = False,
+                 jump_one_at_a_time: bool = False, jump_neighbours: int = JUMP_NEIGHBOURS, jump_refined: bool = False,
                  progress: Callable[[str], None] | None = None):
         unknown = sorted(set(candidates) - set(VIDEO_EFFECTS))
         if unknown:
@@ -1729,7 +1736,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
                    backcast: bool = False, jump_sigmas: float | None = JUMP_SIGMAS,
-                   jump_one_at_a_time: bool = False, jump_neighbours: int = 0, jump_refined: bool = False,
+                   jump_one_at_a_time: bool = False, jump_neighbours: int = JUMP_NEIGHBOURS, jump_refined: bool = False,
                    progress: Callable[[str], None] | None = None) -> dict:
     """Fit a recording, locate the mismatch, and add effects while they beat the noise.
 

@@ -464,7 +464,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         if cfg.data.get("points"):
             return run_points(cfg, out_dir, discover=True)
         raise ConfigError("discover: give data.video=<recording> or data.points=<t,x,y,z csv>")
-    from .discover_video import DEFAULT_CANDIDATES, EDGE_PX, JUMP_SIGMAS, VIDEO_EFFECTS, discover_video
+    from .discover_video import DEFAULT_CANDIDATES, EDGE_PX, JUMP_NEIGHBOURS, JUMP_SIGMAS, VIDEO_EFFECTS, discover_video
 
     ctx = context(cfg)
     settings = params(cfg)
@@ -489,7 +489,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     jump_one_at_a_time = settings.pop("jump_one_at_a_time", False)
     if not isinstance(jump_one_at_a_time, bool):
         raise ConfigError(f"params.jump_one_at_a_time must be true or false, got {jump_one_at_a_time!r}")
-    jump_neighbours = settings.pop("jump_neighbours", 0)
+    jump_neighbours = settings.pop("jump_neighbours", JUMP_NEIGHBOURS)
     if isinstance(jump_neighbours, bool) or not isinstance(jump_neighbours, int) or jump_neighbours < 0:
         raise ConfigError(f"params.jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
     jump_refined = settings.pop("jump_refined", False)

@@ -49,7 +49,8 @@ def main(argv: list[str]) -> None:
                         help="also the frames left out with the K frames on either side of each, and the runs "
                              "that changes (results/jump_neighbours<K>.json)")
     parser.add_argument("--default", default="_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12",
-                        help="the stored default's results suffix, against which the frames at once are checked")
+                        help="the stored runs with no neighbour left out (the default before the forty-seventh "
+                             "session), against whose frames the frames at once are checked")
     args = parser.parse_args(argv)
     files = sorted((HERE / "results").glob("diagnose_jump-scores_*.json"))
     rows = {}
