@@ -1557,8 +1557,8 @@ class VideoProblem:
         A frame is an outlier when, in any channel, it departs from the straight line through
         its two neighbours by more than ``jump_sigmas`` jitter standard deviations (a failed
         segmentation, e.g. a blurred first frame; None: none is): missing physics is smooth in
-        time (:func:`jump_outliers`, at once or, ``jump_one_at_a_time``, worst first).
-        Outliers are left out of every model's criterion and listed in the report. Kept, such
+        time (:func:`jump_outliers`, at once or, ``jump_one_at_a_time``, worst first), and the
+        ``jump_neighbours`` frames on either side of each go with it. Outliers are left out of every model's criterion and listed in the report. Kept, such
         frames cost right names even under Huber's loss (experiments/discover/HISTORY.md,
         forty-fifth session).
         """
