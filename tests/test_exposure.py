@@ -178,8 +178,8 @@ def test_fitted_point_spread_and_exposure_find_what_the_coverage_was_drawn_with(
     covariance is a nuisance every model fits. The blurred throw's coverage seen through a point
     spread of 1.5 px² (its raw moments' m20 and m02 raised by 1.5 m00: area and centre kept) and
     drawn over half the frame interval: started at no spread and a quarter, the refit from the true
-    flight finds both (measured 1.56 ± 0.53 px² and the fraction below; the errors are against
-    noise floors taken at the start, far off), and the nuisances keep their order (edge bias,
+    flight finds both (measured 1.58 ± 0.34 px² and 0.490 ± 0.113 on every frame; the errors are
+    against noise floors taken at the start, far off), and the nuisances keep their order (edge bias,
     point spread, exposure). A point spread without the coverage is refused."""
     import torchfit.discover_video as dv
     from torchfit.discover_video import _Model
@@ -188,8 +188,10 @@ def test_fitted_point_spread_and_exposure_find_what_the_coverage_was_drawn_with(
     coverage = torch.as_tensor(raw_moments(cover.numpy()))
     coverage[:, 3] += 1.5 * coverage[:, 0]
     coverage[:, 5] += 1.5 * coverage[:, 0]
+    # the jump test off: exact renders have no failed frame (on this coverage it takes frames 5-6,
+    # and with their neighbours 4-7, which leaves the spread 1.61 ± 0.67, this test not about it)
     video = dv.VideoProblem(problem, candidates=(), exposure=Exposure(0.25, 5), coverage=coverage,
-                            fit_exposure=True, point_spread=(0.0, math.inf))
+                            fit_exposure=True, point_spread=(0.0, math.inf), jump_sigmas=None)
     assert video.nuisance_names == ("edge", "edge_shape", "point_spread", "exposure")
     start = _Model(cands, {}, video.start_nuisances())
     assert start.nuisances == (0.0, 0.0, 0.0, 0.25)
