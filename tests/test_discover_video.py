@@ -1298,19 +1298,14 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
         cfg = _quick_discover(f"params.jump_sigmas={bad}")
         with pytest.raises(ConfigError, match=f"(?i)params.jump_sigmas must be a positive number .* got '?{bad}'?"):
             run(cfg, tmp_path / f"bad_jump_{bad}")
-    for bad in ("often", "1"):
-        cfg = _quick_discover(f"params.jump_one_at_a_time={bad}")
-        with pytest.raises(ConfigError, match=f"params.jump_one_at_a_time must be true or false, got '?{bad}'?"):
-            run(cfg, tmp_path / f"bad_one_at_a_time_{bad}")
-    for bad in ("-1", "1.5", "true", "two"):
-        cfg = _quick_discover(f"params.jump_neighbours={bad}")
-        with pytest.raises(ConfigError, match=f"(?i)params.jump_neighbours must be a whole number of frames >= 0, "
-                                              f"got '?{bad}'?"):
-            run(cfg, tmp_path / f"bad_neighbours_{bad}")
-    for bad in ("often", "1"):
-        cfg = _quick_discover(f"params.jump_refined={bad}")
-        with pytest.raises(ConfigError, match=f"params.jump_refined must be true or false, got '?{bad}'?"):
-            run(cfg, tmp_path / f"bad_refined_{bad}")
+    refusals = [("", "jump_one_at_a_time", ("often", "1"), "must be true or false,"),
+                ("(?i)", "jump_neighbours", ("-1", "1.5", "true", "two"), "must be a whole number of frames >= 0,"),
+                ("", "jump_refined", ("often", "1"), "must be true or false,")]
+    for flags, key, bads, message in refusals:
+        for bad in bads:
+            cfg = _quick_discover(f"params.{key}={bad}")
+            with pytest.raises(ConfigError, match=f"{flags}params.{key} {message} got '?{bad}'?"):
+                run(cfg, tmp_path / f"bad_{key}_{bad}")
     cfg = _quick_discover("params.speed_noise=true", "params.robust=2", "params.jump_refined=true")
     run(cfg, tmp_path / "good")
     content = json.loads((tmp_path / "good" / "discover.json").read_text())

@@ -173,17 +173,18 @@ def jump_outliers(channels: dict[str, np.ndarray], sigmas: float, one_at_a_time:
         worst = np.max(np.stack(list(current.values())), axis=0)  # (M,) each frame's largest
         if not one_at_a_time:
             keep[left[worst > sigmas]] = False
-            return _widened(~keep, neighbours), scores
+            break
         k = int(np.argmax(worst))
         if k == 1 and worst[0] >= worst[1] * (1 - 1e-9):
             k = 0
         elif k == len(left) - 2 and worst[-1] >= worst[-2] * (1 - 1e-9):
             k = len(left) - 1
         if worst[k] <= sigmas:
-            return _widened(~keep, neighbours), scores
+            break
         keep[left[k]] = False
         if len(left) - 1 < 5:  # too few frames left to judge a line
-            return _widened(~keep, neighbours), scores
+            break
+    return _widened(~keep, neighbours), scores
 
 
 def _widened(outliers: np.ndarray, neighbours: int) -> np.ndarray:

@@ -456,6 +456,15 @@ def run_points(cfg: DictConfig, out_dir: Path, *, discover: bool) -> dict:
     return summary
 
 
+def _switch(settings: dict, key: str) -> bool:
+    """``params.<key>`` taken out of ``settings``: true or false (false when absent), else a
+    ConfigError that names it."""
+    value = settings.pop(key, False)
+    if not isinstance(value, bool):
+        raise ConfigError(f"params.{key} must be true or false, got {value!r}")
+    return value
+
+
 def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     """``task: discover``: find the physics a fit leaves out, in a video (``data.video``) or in 3D
     points (``data.points``); writes discover.json, residuals.png, report.txt (and, for video, the
@@ -475,9 +484,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     edge_px = float(settings.pop("edge_px", EDGE_PX))
     if not (math.isfinite(edge_px) and edge_px >= 0):
         raise ConfigError(f"params.edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
-    speed_noise = settings.pop("speed_noise", False)
-    if not isinstance(speed_noise, bool):
-        raise ConfigError(f"params.speed_noise must be true or false, got {speed_noise!r}")
+    speed_noise = _switch(settings, "speed_noise")
     robust = settings.pop("robust", None)
     backcast = settings.pop("backcast", None)
     jump_sigmas = settings.pop("jump_sigmas", JUMP_SIGMAS)
@@ -486,15 +493,11 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         raise ConfigError(f"params.jump_sigmas must be a positive number of jitter standard deviations or null "
                           f"(no frame left out), got {jump_sigmas!r}")
     jump_sigmas = None if jump_sigmas is None else float(jump_sigmas)
-    jump_one_at_a_time = settings.pop("jump_one_at_a_time", False)
-    if not isinstance(jump_one_at_a_time, bool):
-        raise ConfigError(f"params.jump_one_at_a_time must be true or false, got {jump_one_at_a_time!r}")
+    jump_one_at_a_time = _switch(settings, "jump_one_at_a_time")
     jump_neighbours = settings.pop("jump_neighbours", JUMP_NEIGHBOURS)
     if isinstance(jump_neighbours, bool) or not isinstance(jump_neighbours, int) or jump_neighbours < 0:
         raise ConfigError(f"params.jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
-    jump_refined = settings.pop("jump_refined", False)
-    if not isinstance(jump_refined, bool):
-        raise ConfigError(f"params.jump_refined must be true or false, got {jump_refined!r}")
+    jump_refined = _switch(settings, "jump_refined")
     if quick:
         candidates, iterations = candidates[:1], 2
     bad = sorted(set(candidates) - set(VIDEO_EFFECTS))
