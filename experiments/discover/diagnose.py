@@ -37,6 +37,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
     python experiments/discover/diagnose.py frame-correlation SET [SET...]  # the segmentation error's lag-one correlation on each set's controls, ~30 s a recording
     python experiments/discover/diagnose.py jump-scores SET NAME...     # the jump test's score per channel and frame, as the default meets them, ~1 min each
+    python experiments/discover/diagnose.py resegment SET NAME...       # the segmentation's error against that of a composite of the exact coverage, segmented the same way, ~1 min each
     python experiments/discover/diagnose.py end-frames SET [SETTING=V...]  # the coverage's error on a clip's first and last frames, the default's segmentation and each SETTING=V's, ~15 s a recording each
 
 SET is a folder of concealed recordings beside this file (``recordings``, ``recordings_fresh2``).
@@ -1339,6 +1340,123 @@ def end_frames(folder: Path, variants: list[dict]) -> dict:
     return result
 
 
+RESEGMENT_MARGIN_PX = 12  # resegment: the exact coverage's crop about the true mask, beyond the blur's reach
+RESEGMENT_FULL = 0.98  # resegment: an exact coverage this full is the object's own colour
+
+
+def _composite(frame: np.ndarray, background: np.ndarray, cover: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float picture ``B (1 - a) + F a`` of one (H, W, 3) BGR ``frame``'s object over the
+    (H, W, 3) ``background``, at the (H, W) exact coverage ``cover``: ``F`` is the frame's colour at
+    the nearest pixel whose coverage is full (:data:`RESEGMENT_FULL`), so the object keeps the
+    recording's own shading."""
+    from scipy.ndimage import distance_transform_edt
+
+    full = cover >= RESEGMENT_FULL
+    if not full.any():  # too thin to hold a full pixel: its own colours
+        return background * (1 - cover[..., None]) + frame * cover[..., None]
+    _, (rows, cols) = distance_transform_edt(~full, return_indices=True)
+    colour = frame[rows, cols].astype(np.float64)
+    return background * (1 - cover[..., None]) + colour * cover[..., None]
+
+
+def resegment(folder: Path, seed: int = 0) -> dict:
+    """How much of the segmentation's error on a recording would segmenting a picture made like it
+    predict? The exposure's exact average coverage at the true poses (:func:`_exact_coverage`) is
+    laid over the background the segmentation estimates, in the frame's own object colours
+    (:func:`_composite`), with the recording's sensor noise (``seed``); the picture is stored
+    through the recording's codec and crf ("encoded", ``make_recordings.VideoWriter``) and as
+    lossless PNG frames ("lossless"), and without the noise as lossless PNG frames ("clean"), and
+    each is segmented with the default settings (albedo pass), as the video is. Per channel (:data:`torchfit.residuals.CHANNELS`), against the exact
+    exposure average: the video's error ``e``, the picture's ``b``, and for ``e`` and ``e - b`` the
+    noise floor (:func:`_frame_noise`), the slow part (:func:`_slow` about the median) and the
+    spread about the median; and the correlation of ``e`` with ``b``."""
+    import tempfile
+    from types import SimpleNamespace
+
+    import cv2
+    import make_recordings as mr
+
+    from torchfit.losses import central_moments
+    from torchfit.render import RenderMesh
+    from torchfit.residuals import CHANNELS, channel_values
+    from torchfit.video import _estimate_background, _read_video
+
+    truth, shape, camera = recording_parts(folder)
+    spec = truth["spec"]
+    if camera.distorted or spec.get("distortion"):
+        raise SystemExit(f"{folder.name}: a lens recording; the exact coverage here takes no distortion")
+    if spec.get("transfer", "linear") != "linear":
+        raise SystemExit(f"{folder.name}: stored through {spec['transfer']}; the composite here is linear")
+    settings = SegmentationSettings(albedo_passes=1)
+    frames, _ = _read_video(folder / "video.mp4", 0, None)  # (T, H, W, 3) BGR
+    background = _estimate_background(frames, settings).astype(np.float64)
+    true = np.load(folder / "masks.npz")["masks"].astype(bool)
+    sub_position, sub_rotation = _subframe_poses(truth)
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    height, width = frames.shape[1:3]
+    rng = np.random.default_rng(seed)
+    pictures, clean = [], []
+    for t, frame in enumerate(frames):
+        cover = np.zeros((height, width))
+        if true[t].any():
+            rows, cols = np.nonzero(true[t])
+            y0, x0 = max(rows.min() - RESEGMENT_MARGIN_PX, 0), max(cols.min() - RESEGMENT_MARGIN_PX, 0)
+            y1 = min(rows.max() + 1 + RESEGMENT_MARGIN_PX, height)
+            x1 = min(cols.max() + 1 + RESEGMENT_MARGIN_PX, width)
+            cover[y0:y1, x0:x1] = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, y1 - y0, x1 - x0)
+        picture = _composite(frame, background, cover)
+        clean.append(np.clip(np.rint(picture), 0, 255).astype(np.uint8))
+        picture = picture + rng.normal(0.0, 255.0 * spec["noise_sigma"], frame.shape)
+        pictures.append(np.clip(np.rint(picture), 0, 255).astype(np.uint8))
+    mid, averaged = _exact_moments(truth, shape, camera)
+    exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
+
+    def errors(observation) -> np.ndarray:  # (C, T)
+        seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
+        values = channel_values(seen, exact)
+        return np.stack([np.asarray(values[c], np.float64) for c in CHANNELS])
+
+    video = errors(load_observation(str(folder / "video.mp4"), camera=camera, settings=settings))
+    predicted = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        writer = mr.VideoWriter(Path(tmp) / "picture.mp4", SimpleNamespace(
+            codec=spec["codec"], crf=spec["crf"], fps=spec["fps"], fps_stated=spec.get("fps_stated"),
+            transfer="linear"), width, height)
+        for picture in pictures:
+            writer.write(cv2.cvtColor(picture, cv2.COLOR_BGR2RGB))
+        writer.release()
+        predicted["encoded"] = errors(load_observation(str(Path(tmp) / "picture.mp4"), camera=camera,
+                                                       settings=settings))
+        (Path(tmp) / "png").mkdir()
+        for t, picture in enumerate(pictures):
+            cv2.imwrite(str(Path(tmp) / "png" / f"{t:04d}.png"), picture)
+        predicted["lossless"] = errors(load_observation(str(Path(tmp) / "png"), kind="images", fps=spec["fps"],
+                                                        camera=camera, settings=settings))
+        for t, picture in enumerate(clean):
+            cv2.imwrite(str(Path(tmp) / "png" / f"{t:04d}.png"), picture)
+        predicted["clean"] = errors(load_observation(str(Path(tmp) / "png"), kind="images", fps=spec["fps"],
+                                                     camera=camera, settings=settings))
+
+    def figures(series: np.ndarray) -> dict:
+        finite = series[np.isfinite(series)]
+        centred = finite - np.median(finite)
+        return {"floor": _frame_noise(series), "slow": float(_slow(centred).std()), "spread": float(centred.std())}
+
+    result = {"frames": int(len(frames)), "channels": {}}
+    for c, name in enumerate(CHANNELS):
+        row = {"video": figures(video[c])}
+        for kind, b in predicted.items():
+            ok = np.isfinite(video[c]) & np.isfinite(b[c])
+            corrected = np.where(ok, video[c] - b[c], np.nan)
+            row[kind] = figures(corrected) | {"correlation": float(np.corrcoef(video[c][ok], b[c][ok])[0, 1])}
+        result["channels"][name] = row
+        print(folder.name, name, f"floor {row['video']['floor']:.4g}",
+              " ".join(f"{k} {row[k]['floor'] / row['video']['floor']:.2f}/{row[k]['slow'] / row['video']['slow']:.2f}"
+                       f" r {row[k]['correlation']:+.2f}" for k in predicted), flush=True)
+    result["errors"] = {"video": video.tolist(), **{k: v.tolist() for k, v in predicted.items()}}
+    return result
+
+
 REGION_EDGES = (0.02, 0.98)  # regions: the exact coverage's bins (np.digitize) ...
 REGIONS = {"interior": 2, "ramp": 1, "outside": 0}  # ... from 0.98 on, between, below 0.02
 
@@ -1657,7 +1775,8 @@ def main(argv: list[str]) -> None:
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
                 "spread-stall": spread_stall, "baseline-starts": baseline_starts,
                 "shape-frames": shape_frames, "error-speed": error_speed, "regions": regions,
-                "lens-residual": lens_residual, "gravity-known": gravity_known, "jump-scores": jump_scores}
+                "lens-residual": lens_residual, "gravity-known": gravity_known, "jump-scores": jump_scores,
+                "resegment": resegment}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
     command, folder = argv[0], HERE / argv[1]
@@ -1681,7 +1800,7 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions + parts + held + robust + backcast + exact]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
-                          "shape-frames", "error-speed", "regions", "lens-residual", "jump-scores")
+                          "shape-frames", "error-speed", "regions", "lens-residual", "jump-scores", "resegment")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
