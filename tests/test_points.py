@@ -119,6 +119,50 @@ def test_backcast_predicts_each_tracks_start_from_the_rest():
     assert shifted.heldout_rms > two.heldout_rms + 0.01  # the start, 6 cm off, is predicted badly
 
 
+def test_held_out_median_over_tracks_is_not_dominated_by_one_bad_track():
+    """``ModelFit.heldout_track_median``: the median over tracks of each track's held-out RMS (the
+    mean over the splits, as ``heldout_rms``). One of five tracks whose held-out end is moved 5 cm
+    (samples no fit sees) raises the pooled held-out RMS many times over; the median is the clean
+    tracks' own figure, near the 1 mm noise. With the backcast both figures are the mean of the
+    two splits', each as defined here from the fits' residuals."""
+    from torchfit.discover import track_median_rms
+
+    tracks = [synthesize_track(["quadratic_drag"], {("quadratic_drag", "drag_coefficient"): 0.5}, samples=40, seed=k)
+              for k in range(5)]
+    data = batch_tracks(tracks)
+
+    def per_track(fit, split):
+        held = fit.payload[split[0]].residual * split[1].weights.unsqueeze(-1)
+        return held, np.array([math.sqrt(float((held[b] ** 2).sum()) / (3 * float(split[1].weights[b].sum())))
+                               for b in range(len(tracks))])
+
+    problem = PointsProblem(data, candidates=(), noise_var=1e-6, **BALL)
+    clean = problem.fit(("quadratic_drag",), None)
+    end_test = problem.splits["train"][1]
+    moved = data.positions.clone()
+    moved[0][end_test.weights[0] > 0] += torch.tensor([0.05, 0.0, 0.0], dtype=moved.dtype)
+    bad = PointsProblem(replace(data, positions=moved), candidates=(), noise_var=1e-6, **BALL).fit(("quadratic_drag",), None)
+    assert bad.heldout_rms > 5 * clean.heldout_rms
+    _, clean_rms = per_track(clean, ("train", end_test))
+    assert clean.heldout_track_median == pytest.approx(np.median(clean_rms), rel=1e-12)
+    assert clean.heldout_track_median < 3e-3  # about the 1 mm noise
+    # the train fit never saw the moved samples: the other four tracks' figures are as they were
+    assert bad.heldout_track_median == pytest.approx(np.median(np.r_[np.inf, clean_rms[1:]]), rel=1e-9)
+
+    both = PointsProblem(data, candidates=(), noise_var=1e-6, backcast=True, **BALL)
+    fit = both.fit(("quadratic_drag",), None)
+    medians = []
+    for split in both.splits.items():
+        held, rms = per_track(fit, (split[0], split[1][1]))
+        medians.append(float(np.median(rms)))
+        assert track_median_rms(held, split[1][1].weights) == pytest.approx(medians[-1], rel=1e-12)
+    assert fit.heldout_track_median == pytest.approx(np.mean(medians), rel=1e-12)
+    # one track: no median to take (the pooled figure is that track's); no weighted sample: NaN
+    single = PointsProblem(batch_tracks(tracks[:1]), candidates=(), noise_var=1e-6, **BALL)
+    assert single.fit((), None).heldout_track_median is None
+    assert math.isnan(track_median_rms(held, torch.zeros_like(end_test.weights)))
+
+
 def test_fit_points_writes_result(tmp_path):
     data = batch_tracks([synthesize_track(samples=30)])
     content = fit_points(data, out_dir=tmp_path, **BALL)

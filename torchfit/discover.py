@@ -144,6 +144,11 @@ class ModelFit:
             the fits whose predictions ``heldout_rms`` scores (physical units, as ``params``'
             values): the first fitted without the held-out end of the data, a second (a video's
             backcast) without its start.
+        heldout_track_median: optional, for data in two or more tracks: the median over the tracks
+            of each track's own held-out RMS (the mean over the splits, as ``heldout_rms``). The
+            pooled ``heldout_rms`` weighs every sample alike, so a few badly predicted tracks can
+            dominate it; the median says what a typical track's prediction does. Reported, not
+            used by the selection.
         payload: the problem's own (warm start, residuals).
         parts: optional (U,) chi-squared per unit of the data (a video's frames, in order), the
             part of ``rss / noise_var`` each unit contributes: where a candidate's evidence lies.
@@ -165,6 +170,7 @@ class ModelFit:
     heldout_deviance: float | None = None
     heldout_logdet: float | None = None
     heldout_params: list[dict] | None = None
+    heldout_track_median: float | None = None
 
 
 class SelectionProblem(Protocol):
@@ -418,6 +424,18 @@ def estimate_noise(data: PointData, window: int = 7, degree: int = 2) -> float:
     return sums / dofs
 
 
+def track_median_rms(residual: torch.Tensor, weights: torch.Tensor) -> float:
+    """The median over tracks of each track's RMS, from (B, T, 3) weighted ``residual`` (zero where
+    ``weights`` is) and (B, T) ``weights``; tracks without a weighted sample are left out (NaN
+    when none has one)."""
+    counts = weights.sum(-1)
+    has = counts > 0
+    if not bool(has.any()):
+        return math.nan
+    per_track = torch.sqrt((residual ** 2).sum((-1, -2))[has] / (3 * counts[has]))
+    return float(np.median(per_track.detach().cpu().numpy()))
+
+
 class PointsProblem:
     """:class:`SelectionProblem` for 3D point tracks: effect parameters shared by all tracks.
 
@@ -479,18 +497,20 @@ class PointsProblem:
         model = self.model(effects)
         clock = time.perf_counter()
         full = fit_tracks(model, self.data, self.start(model, warm, "all"), shared=True)
-        fits, split_rms = {"all": full}, []
+        fits, split_rms, split_median = {"all": full}, [], []
         for which, (train_data, test_data) in self.splits.items():
             fits[which] = train = fit_tracks(model, train_data, self.start(model, warm, which), shared=True)
             held = train.residual * test_data.weights.unsqueeze(-1)
             split_rms.append(math.sqrt(float((held ** 2).sum()) / max(3 * float(test_data.weights.sum()), 1.0)))
+            split_median.append(track_median_rms(held, test_data.weights))
         if self.progress:
             self.progress(f"    fit {list(effects)}: {time.perf_counter() - clock:.1f} s")
         heldout_params = [{name: {p: entry["value"] for p, entry in params.items()}
                            for name, params in self.describe(fits[which]).items()} for which in self.splits]
         return ModelFit(effects, full.rss, full.n_obs, full.n_free, self.describe(full),
                         math.sqrt(full.rss / full.n_obs), float(np.mean(split_rms)), fits,
-                        wald=self.wald(full), heldout_params=heldout_params)
+                        wald=self.wald(full), heldout_params=heldout_params,
+                        heldout_track_median=float(np.mean(split_median)) if self.data.batch > 1 else None)
 
     def wald(self, fit: PointFit) -> dict:
         """``{effect: W}``: the Wald statistic of each effect's shared parameters against their null
@@ -823,6 +843,14 @@ def not_named_lines(selection: Selection, heldout: Callable[[dict], str], spread
     return lines
 
 
+def _track_median_words(base: ModelFit, final: ModelFit, mm: Callable[[float], str]) -> str:
+    """The report's words for :attr:`ModelFit.heldout_track_median` before -> after (nothing when
+    the fits do not carry it, e.g. a single track's)."""
+    if base.heldout_track_median is None or final.heldout_track_median is None:
+        return ""
+    return f" (a track's, median over the tracks: {mm(base.heldout_track_median)} -> {mm(final.heldout_track_median)})"
+
+
 def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict, located_after: dict,
                   noise_var: float, holdout: float, backcast: bool = False) -> str:
     """report.txt of :func:`discover_points`: a report a person reads in a minute (``holdout``:
@@ -839,7 +867,8 @@ def points_report(selection: Selection, chain: Sequence[ModelFit], located: dict
              *limits_line(selection, "data"),
              f"Evidence: RMS {mm(base.fit_rms)} -> {mm(final.fit_rms)}; held-out RMS (the last "
              f"{100 * holdout:.0f} % of each track, predicted{held_start}) {mm(base.heldout_rms)} -> "
-             f"{mm(final.heldout_rms)}; BIC {_criterion(base, noise_var)[1]:.1f} -> {_criterion(final, noise_var)[1]:.1f}.",
+             f"{mm(final.heldout_rms)}{_track_median_words(base, final, mm)}; "
+             f"BIC {_criterion(base, noise_var)[1]:.1f} -> {_criterion(final, noise_var)[1]:.1f}.",
              f"Left after the final model (RMS {mm(located_after['rms_m'])}): {located_after['summary']}.",
              *not_named_lines(selection, lambda s: f"{mm(s['heldout_rms_before'])} -> {mm(s['heldout_rms_after'])}",
                               lambda s: "one stretch of the samples")]
@@ -884,7 +913,7 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
         "noise_rms_m": math.sqrt(problem.noise_var),
         "models": [{"effects": list(f.effects), "rms_m": f.fit_rms, "heldout_rms_m": f.heldout_rms,
-                    "bic": _criterion(f, problem.noise_var)[1], "n_obs": f.n_obs, "n_free": f.n_free,
+                    "heldout_track_median_m": f.heldout_track_median, "bic": _criterion(f, problem.noise_var)[1], "n_obs": f.n_obs, "n_free": f.n_free,
                     "params": f.params} for f in chain],
         "tracks": len(data.names),
         "samples": int(data.weights.sum()),

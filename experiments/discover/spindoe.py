@@ -114,7 +114,8 @@ def main(out_dir: Path, limit: int | None = None, backcast: bool = False) -> dic
                 "median_se": float(1.2533 * values.std(ddof=1) / math.sqrt(len(values)))}
 
     def row(fit):
-        return {"effects": list(fit.effects), "rms_mm": 1e3 * fit.fit_rms, "heldout_rms_mm": 1e3 * fit.heldout_rms}
+        return {"effects": list(fit.effects), "rms_mm": 1e3 * fit.fit_rms, "heldout_rms_mm": 1e3 * fit.heldout_rms,
+                "heldout_track_median_mm": 1e3 * fit.heldout_track_median}
 
     summary = {
         "data": {"flights": len(tracks), "samples": int(data.weights.sum()), "noise_rms_mm": 1e3 * content["noise_rms_m"],
@@ -124,7 +125,8 @@ def main(out_dir: Path, limit: int | None = None, backcast: bool = False) -> dic
         "verdict": content["verdict"],
         "indistinguishable": content["indistinguishable"],
         "steps": [{"effects": m["effects"], "rms_mm": 1e3 * m["rms_m"], "heldout_rms_mm": 1e3 * m["heldout_rms_m"],
-                   "params": m["params"]} for m in content["models"]],
+                   "heldout_track_median_mm": 1e3 * m["heldout_track_median_m"], "params": m["params"]}
+                  for m in content["models"]],
         "pooled_all": {"drag_coefficient": both.params["quadratic_drag"]["drag_coefficient"],
                        "lift_coefficient": both.params["magnus"]["lift_coefficient"],
                        "rms": [row(problem.fit((), None)), row(drag_only), row(both)]},
@@ -137,7 +139,9 @@ def main(out_dir: Path, limit: int | None = None, backcast: bool = False) -> dic
         "pooled_agreeing": {"flights": int(agree.sum()), "verdict": sub_content["verdict"],
                             "indistinguishable": sub_content["indistinguishable"],
                             "steps": [{"effects": m["effects"], "rms_mm": 1e3 * m["rms_m"],
-                                       "heldout_rms_mm": 1e3 * m["heldout_rms_m"], "params": m["params"]}
+                                       "heldout_rms_mm": 1e3 * m["heldout_rms_m"],
+                                       "heldout_track_median_mm": 1e3 * m["heldout_track_median_m"],
+                                       "params": m["params"]}
                                       for m in sub_content["models"]],
                             "drag_coefficient": sub_both.params["quadratic_drag"]["drag_coefficient"],
                             "lift_coefficient": sub_both.params["magnus"]["lift_coefficient"],
