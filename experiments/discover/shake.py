@@ -1,0 +1,103 @@
+"""A camera that is not quite still: a concealed recording refilmed with a small shake.
+
+    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S]
+    python -m torchfit experiment=discover_video data.video=DIR/NAME_shakeA/video.mp4 \
+        object.mesh=DIR/NAME_shakeA/mesh.obj object.density=D camera.file=DIR/NAME_shakeA/camera.json
+
+Each frame of ``SET/NAME/video.mp4`` (a folder beside this file, e.g. ``recordings``) is moved as a
+whole by a smooth random offset: white noise in x and y, Gaussian-smoothed over
+:data:`SMOOTH_FRAMES` frames and scaled to an RMS of ``AMPLITUDE`` px on each axis (seed ``S`` plus
+a hash of the name, the same for every amplitude), resampled with Lanczos and stored again
+through the recording's own codec and crf (``make_recordings.VideoWriter``). Amplitude 0 is the
+second encoding alone. Each amplitude's folder ``DIR/NAME_shake<A>/`` gets the video, the
+recording's ``mesh.obj``, ``camera.json`` and ``truth.json``, and ``shake.json`` with the offsets.
+A move of the whole image is what a small turn of the camera does to a far background and, to
+first order, to the object (HISTORY.md, *A camera that is not quite still*).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import zlib
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent / "recordings"))  # make_recordings.VideoWriter
+
+SMOOTH_FRAMES = 3.0  # the Gaussian's standard deviation, frames
+
+
+def shake_path(frames: int, amplitude: float, seed: int) -> np.ndarray:
+    """(T, 2) offsets in px: white noise smoothed by a Gaussian of :data:`SMOOTH_FRAMES` frames,
+    each axis scaled to an RMS of ``amplitude`` about zero."""
+    from scipy.ndimage import gaussian_filter1d
+
+    noise = gaussian_filter1d(np.random.default_rng(seed).normal(size=(frames, 2)), SMOOTH_FRAMES, axis=0,
+                              mode="reflect")
+    noise -= noise.mean(0)
+    return amplitude * noise / noise.std(0)
+
+
+def shaken(frames: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(T, H, W, 3) uint8 ``frames`` each moved by its (2,) offset (x, y) in px, Lanczos, the border
+    replicated."""
+    out = np.empty_like(frames)
+    height, width = frames.shape[1:3]
+    for t, (frame, (dx, dy)) in enumerate(zip(frames, offsets)):
+        out[t] = cv2.warpAffine(frame, np.float32([[1, 0, dx], [0, 1, dy]]), (width, height),
+                                flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+    return out
+
+
+def make(folder: Path, amplitude: float, out: Path, seed: int = 0) -> Path:
+    """The recording ``folder`` refilmed with a shake of ``amplitude`` px RMS into ``out``; returns
+    the new folder."""
+    import make_recordings as mr
+
+    from torchfit.video import _read_video
+
+    if not (amplitude >= 0):
+        raise SystemExit(f"the shake's amplitude must be a number of pixels >= 0, got {amplitude}")
+    truth = json.loads((folder / "truth.json").read_text())
+    spec = truth["spec"]
+    frames, _ = _read_video(folder / "video.mp4", 0, None)  # BGR
+    offsets = shake_path(len(frames), amplitude, seed + zlib.crc32(folder.name.encode()))
+    target = out / f"{folder.name}_shake{amplitude:g}"
+    target.mkdir(parents=True, exist_ok=True)
+    writer = mr.VideoWriter(target / "video.mp4", SimpleNamespace(
+        codec=spec["codec"], crf=spec["crf"], fps=spec["fps"], fps_stated=spec.get("fps_stated"),
+        transfer=spec.get("transfer", "linear")), frames.shape[2], frames.shape[1])
+    for frame in shaken(frames, offsets):
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+    writer.release()
+    for name in ("mesh.obj", "camera.json", "truth.json"):
+        shutil.copy(folder / name, target / name)
+    (target / "shake.json").write_text(json.dumps({"source": str(folder), "amplitude_px": amplitude,
+                                                   "smooth_frames": SMOOTH_FRAMES, "offsets_px": offsets.tolist()}))
+    return target
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("set", help="a folder of concealed recordings beside this file (recordings, recordings_fresh2)")
+    ap.add_argument("name", help="the recording")
+    ap.add_argument("amplitudes", type=float, nargs="+", help="RMS of the shake on each axis, px")
+    ap.add_argument("--out", type=Path, default=HERE / "recordings_shake", help="where the refilmed folders go")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    folder = HERE / args.set / args.name
+    if not (folder / "truth.json").exists():
+        raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
+    for amplitude in args.amplitudes:
+        print(make(folder, amplitude, args.out, args.seed), flush=True)
+
+
+if __name__ == "__main__":
+    main()
