@@ -80,7 +80,7 @@ from .search import (
     candidate_poses,
     fit,
 )
-from .video import _boxes, raw_moments
+from .video import _boxes, camera_motion_note, raw_moments
 
 __all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_NEIGHBOURS",
            "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
@@ -1868,6 +1868,10 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "candidates": list(video.candidates),
         "seconds": time.perf_counter() - clock,
         "provenance": provenance(observation.source, observation.masks),
+        # each frame's background offset (x, y) in px against the clip's, and whether the frames
+        # were moved back by it before the segmentation (torchfit.video.camera_motion)
+        "camera_motion_px": None if observation.camera_motion is None else observation.camera_motion.tolist(),
+        "stabilised": observation.stabilised,
     }
     if truth is not None:
         content["truth_effects"] = truth.get("effects", {})
@@ -1894,6 +1898,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                                                None if withheld else unexplained, content["size_mismatch"],
                                                content["iou_baseline"]["mean_fitted"],
                                                located_heldout) + span_lines(int(span[0]))
+    if camera_motion_note(observation):
+        report.append(camera_motion_note(observation))
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)

@@ -174,10 +174,10 @@ def _plots(out_dir: Path, per_frame: dict, curve: list) -> None:
 def _overlay_video(path: Path, observation, fitted: np.ndarray) -> None:
     import cv2
 
-    from .video import read_frames
+    from .video import observed_frames
 
     try:
-        frames = read_frames(observation.source, observation.frame_indices)  # (T, H, W, 3) RGB
+        frames = observed_frames(observation)  # (T, H, W, 3) RGB, as segmented (moved back if stabilised)
     except Exception:  # noqa: BLE001 - masks input has no frames: draw on black
         frames = np.zeros((*fitted.shape, 3), np.uint8)
     height, width = fitted.shape[1:]

@@ -31,7 +31,7 @@ from .render import RenderMesh
 from .report import score_against_truth, summary_text, write_outputs
 from .search import Exposure, FitResult, Problem, SearchSettings, fit
 from .shape import PRIMITIVES, Shape, load_shape
-from .video import Observation, SegmentationSettings, contact_sheet, load_observation
+from .video import Observation, SegmentationSettings, camera_motion_note, contact_sheet, load_observation
 
 __all__ = [
     "TASKS",
@@ -76,14 +76,16 @@ def _band(value):
 
 
 def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:
-    """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px) as
+    """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px, stabilise) as
     :class:`SegmentationSettings`; ``albedo_passes: null`` is one pass where discover compares the
     soft coverage (``coverage``: the motion blur modelled, the path measured with it) and none
     elsewhere; ``coverage_near_px`` absent or null is the settings' own band."""
     passes, band = node.get("albedo_passes"), node.get("coverage_near_px")
+    stabilise = node.get("stabilise", "auto")
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
                                     albedo_passes=(1 if coverage else 0) if passes is None else int(passes),
+                                    stabilise=stabilise if isinstance(stabilise, bool) else str(stabilise),
                                     **({} if band is None else {"coverage_near_px": _band(band)}))
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
@@ -348,6 +350,8 @@ def fit_recording(video: str | Path, shape: Shape, camera: Camera, settings: Sea
                  f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
         if observation.transfer_note:
             progress(_transfer_line(observation, segmentation))
+        if camera_motion_note(observation):
+            progress(camera_motion_note(observation))
     problem, span = build_problem(observation, shape, camera, g=g, dtype=dtype, device=torch.device(device))
     clock = time.perf_counter()
     result = fit(problem, settings, progress=progress)
@@ -534,6 +538,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                                    settings=segmentation)
     if observation.transfer_note:
         ctx["progress"](_transfer_line(observation, segmentation))
+    if camera_motion_note(observation):
+        ctx["progress"](camera_motion_note(observation))
     if auto and observation.kind == "masks":  # the blur's path was measured on frames, not on given masks
         exposure = None
         ctx["progress"]("motion blur not modelled: a folder of masks has no soft coverage to read it from "

@@ -33,6 +33,12 @@ values are decoded to light before any of the above, through the curve the file 
 (``SegmentationSettings.transfer = "auto"``, :func:`stored_transfer`) or the one set; torchfit's
 generated recordings name none, mix in their stored values and are read as they are (``linear``).
 
+A camera held in the hand moves a little between frames, and the model projects the flight
+through one still camera. Before anything above, each frame's move against the clip's background
+is measured (:func:`camera_motion`, a whole-image offset: what a small turn of the camera does);
+where the background moves by more than :data:`STILL_PX`, the frames are moved back
+(``SegmentationSettings.stabilise``) and the observation keeps the offsets.
+
 Frames that should not be fitted keep their place in every per-frame array and are flagged
 ``used=False`` with a reason. Segmentation results are cached in ``cache_dir``.
 """
@@ -58,6 +64,10 @@ __all__ = [
     "load_observation",
     "raw_moments",
     "read_frames",
+    "observed_frames",
+    "camera_motion",
+    "camera_motion_note",
+    "stabilised",
     "stored_transfer",
     "contact_sheet",
     "BACKGROUND_METHODS",
@@ -69,7 +79,17 @@ BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 COVERAGE_BANDS = ("steps", "motion")
 SHADING_FITS = ("constant", "linear")
-_CACHE_VERSION = 6
+_CACHE_VERSION = 7
+STABILISE = ("auto", True, False)
+# stabilise="auto": the frames are moved back when some frame's background lies more than this
+# many pixels from the clip's median (camera_motion). Still concealed recordings read at most
+# ... px, and a shake of 0.5 px RMS is what made a control name an effect (experiments/discover/
+# HISTORY.md, *A camera that is not quite still*).
+STILL_PX = 0.25
+# camera_motion: pixels whose grey level lies this far from the aligned background are the object's
+# (or another mover's) and are left out of the registration, grown by MOTION_OBJECT_GROW_PX
+MOTION_OBJECT_DIFF = 20.0
+MOTION_OBJECT_GROW_PX = 9
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
 BAND_REFERENCE_STEPS, BAND_REFERENCE_PIXELS = 4, 640 * 480
 
@@ -147,6 +167,10 @@ class SegmentationSettings:
         area_jump: a frame whose area differs by more than this factor from the median area
             of its clean neighbours (three each side) is flagged.
         max_background_frames: frames (evenly spaced) that feed the background model.
+        stabilise: move each frame back by its background's offset (:func:`camera_motion`)
+            before anything else, so a camera that shook in the hand is seen as a still one:
+            ``True``, ``False`` (the offsets are still measured and reported) or ``"auto"`` (the
+            default): when some frame's offset exceeds :data:`STILL_PX`.
     """
 
     method: str = "median"
@@ -166,8 +190,11 @@ class SegmentationSettings:
     second_component_frac: float = 0.5
     area_jump: float = 2.0
     max_background_frames: int = 60
+    stabilise: bool | str = "auto"
 
     def __post_init__(self) -> None:
+        if not any(self.stabilise is choice or self.stabilise == choice == "auto" for choice in STABILISE):
+            raise ValueError(f'stabilise must be true, false or "auto", got {self.stabilise!r}')
         if self.method not in BACKGROUND_METHODS:
             raise ValueError(
                 f'Invalid method "{self.method}". Must be one of {", ".join(BACKGROUND_METHODS)}'
@@ -234,6 +261,11 @@ class Observation:
             mask input; zeros where a frame has no object), undistorted with the masks (the
             coverage resampled through the camera's undistortion before its moments are taken);
             None for an observation made without them.
+        camera_motion: (T, 2) each frame's background offset ``(x, y)`` in pixels against the
+            clip's (:func:`camera_motion`); None for mask input.
+        stabilised: True when the frames were moved back by ``camera_motion`` before they were
+            segmented (``SegmentationSettings.stabilise``): the masks are then in the still
+            camera's place, and :func:`observed_frames` gives the frames as segmented.
     """
 
     masks: np.ndarray
@@ -251,6 +283,15 @@ class Observation:
     transfer: str = ""
     transfer_note: str = ""
     coverage_moments: np.ndarray | None = None
+    camera_motion: np.ndarray | None = None
+    stabilised: bool = False
+
+    @property
+    def camera_moved_px(self) -> float:
+        """The largest background offset of any frame (px; 0 without a measurement)."""
+        if self.camera_motion is None or not len(self.camera_motion):
+            return 0.0
+        return float(np.linalg.norm(self.camera_motion, axis=1).max())
 
     @property
     def times(self) -> np.ndarray:
@@ -378,6 +419,92 @@ def read_frames(source: str | Path, frame_indices) -> np.ndarray:
         video, _ = _read_video(path, min(indices), max(indices) + 1)
         frames = [video[i - min(indices)] for i in indices]
     return np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2RGB) for f in frames])
+
+
+def observed_frames(observation: Observation, positions=None) -> np.ndarray:
+    """(N, H, W, 3) uint8 RGB frames of ``observation`` at ``positions`` (indices into its frames;
+    all when None) as they were segmented: read from its source and, when it was stabilised,
+    moved back by its :attr:`Observation.camera_motion` (:func:`stabilised`)."""
+    positions = np.arange(len(observation.frame_indices)) if positions is None else np.asarray(positions)
+    frames = read_frames(observation.source, observation.frame_indices[positions])
+    if observation.stabilised:
+        frames = stabilised(frames, observation.camera_motion[positions])
+    return frames
+
+
+def camera_motion_note(observation: Observation) -> str:
+    """A sentence on the camera's motion for the log and the report ("" for mask input, or when
+    no frame's background moved more than :data:`STILL_PX`)."""
+    moved = observation.camera_moved_px
+    if observation.camera_motion is None or moved <= STILL_PX:
+        return ""
+    rms = float(np.sqrt((observation.camera_motion ** 2).sum(1).mean()))
+    frame = int(observation.frame_indices[int(np.argmax(np.linalg.norm(observation.camera_motion, axis=1)))])
+    line = (f"The camera moved: the background of frame {frame} lies {moved:.2f} px from the clip's "
+            f"(RMS {rms:.2f} px over the frames)")
+    if observation.stabilised:
+        return line + "; the frames were moved back before they were segmented (data.segmentation.stabilise)."
+    return line + ("; the frames were not moved back (data.segmentation.stabilise=false), and the model "
+                   "takes a still camera: what it finds may be the camera's motion.")
+
+
+def _shifted(image: np.ndarray, dx: float, dy: float, flags: int) -> np.ndarray:
+    """``image`` moved by ``(dx, dy)`` px (a point at ``x`` goes to ``x + dx``), the border replicated."""
+    height, width = image.shape[:2]
+    return cv2.warpAffine(image, np.float32([[1, 0, dx], [0, 1, dy]]), (width, height), flags=flags,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def stabilised(frames: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(T, H, W, C) ``frames`` each moved back by its (T, 2) ``offsets`` (:func:`camera_motion`),
+    resampled with Lanczos: the frames a still camera would have taken."""
+    return np.stack([_shifted(frame, -float(dx), -float(dy), cv2.INTER_LANCZOS4)
+                     for frame, (dx, dy) in zip(frames, offsets)])
+
+
+def camera_motion(frames: np.ndarray, passes: int = 3) -> np.ndarray:
+    """How each frame's background moved: (T, 2) offsets ``(x, y)`` in pixels of (T, H, W, 3)
+    uint8 BGR ``frames`` against the clip's background, about their median (so a still camera
+    reads zeros). A whole-image move, what a small turn of a camera held in the hand does to a
+    far background; a turn about the line of sight or a move towards the scene is not measured.
+
+    Each pass registers every frame's grey levels against the median of the frames moved back
+    by the offsets so far (:func:`stabilised`), with the object left out: pixels more than
+    :data:`MOTION_OBJECT_DIFF` grey levels off that median, grown by
+    :data:`MOTION_OBJECT_GROW_PX`, take the median's value (from the second pass on). The
+    passes before the last correlate phases (``cv2.phaseCorrelate``, a Hann window), which
+    finds a move of many pixels; the last refines it by ECC (``cv2.findTransformECC``, a
+    translation, the object masked), which phase correlation alone needs to be accurate: on
+    the concealed recordings moved by a known smooth shake of 1-2 px RMS the offsets read
+    0.03 px RMS off, and still ones 0.006-0.012 px RMS (experiments/discover/HISTORY.md, *A
+    camera that is not quite still*). Where ECC does not converge, the phase correlation's
+    offset stays."""
+    grey = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames])
+    count, height, width = grey.shape
+    offsets = np.zeros((count, 2))
+    window = cv2.createHanningWindow((width, height), cv2.CV_32F)
+    grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    for step in range(passes):
+        moved = np.stack([_shifted(g, -dx, -dy, cv2.INTER_LINEAR) for g, (dx, dy) in zip(grey, offsets)])
+        reference = np.median(moved, axis=0).astype(np.float32)
+        for t in range(count):
+            if step == 0:
+                still, image = np.ones((height, width), bool), moved[t]
+            else:
+                still = cv2.dilate((np.abs(moved[t] - reference) > MOTION_OBJECT_DIFF).astype(np.uint8), grow) == 0
+                image = np.where(still, moved[t], reference).astype(np.float32)
+            if step < passes - 1:
+                (dx, dy), _ = cv2.phaseCorrelate(reference, image, window)
+            else:
+                try:
+                    _, warp = cv2.findTransformECC(reference, image, np.eye(2, 3, dtype=np.float32),
+                                                   cv2.MOTION_TRANSLATION, criteria, still.astype(np.uint8), 1)
+                    dx, dy = float(warp[0, 2]), float(warp[1, 2])
+                except cv2.error:
+                    dx = dy = 0.0
+            offsets[t] += (dx, dy)
+    return offsets - np.median(offsets, axis=0)
 
 
 # --------------------------------------------------------------------------------------
@@ -1134,7 +1261,7 @@ def load_observation(
         cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings, camera)}.npz"
         cached = _load_cache(cache_file)
 
-    background = None
+    background, motion, moved_back = None, None, False
     if kind == "masks":
         masks = _read_mask_folder(paths, start, stop)
         second_frac = np.array([
@@ -1147,12 +1274,18 @@ def load_observation(
         masks, second_frac = cached["masks"].astype(bool), cached["second_frac"]
         background, cover_moments = cached["background"], cached["coverage_moments"]
         frame_fps = float(fps) if fps is not None else float(cached["fps"])
+        motion, moved_back = cached["camera_motion"], bool(cached["stabilised"])
     else:
         if kind == "video":
             frames, file_fps = _read_video(path, start, stop)
         else:
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
+        motion = camera_motion(frames)
+        moved_back = settings.stabilise is True or (
+            settings.stabilise == "auto" and float(np.linalg.norm(motion, axis=1).max()) > STILL_PX)
+        if moved_back:
+            frames = stabilised(frames, motion)
         segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
@@ -1164,7 +1297,8 @@ def load_observation(
         if cache_file is not None:
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(cache_file, masks=masks, second_frac=second_frac,
-                                background=background, fps=file_fps, coverage_moments=cover_moments)
+                                background=background, fps=file_fps, coverage_moments=cover_moments,
+                                camera_motion=motion, stabilised=moved_back)
     _check_size(masks.shape[1:3], camera, path)
 
     if distorted:  # a frame's coverage moments were taken undistorted (_segment)
@@ -1193,6 +1327,8 @@ def load_observation(
         transfer="" if kind == "masks" else settings.transfer,
         transfer_note=transfer_note,
         coverage_moments=cover_moments,
+        camera_motion=motion,
+        stabilised=moved_back,
     )
 
 
@@ -1237,7 +1373,7 @@ def contact_sheet(observation: Observation, frames: np.ndarray | None, path: str
         if observation.kind == "masks":
             tiles = np.full((len(picks), height, width, 3), 96, np.uint8)
         else:
-            tiles = read_frames(observation.source, observation.frame_indices[picks])
+            tiles = observed_frames(observation, picks)
             camera = observation.camera
             if camera is not None and camera.distorted:
                 tiles = np.stack([cv2.undistort(f, camera.K, np.asarray(camera.dist_coeffs))
