@@ -198,6 +198,12 @@ def test_segmentation_settings_come_from_the_config():
     assert band.coverage_near_px == 8
     auto = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": "auto"}))
     assert auto.coverage_near_px == "auto" and auto.band_steps(960, 1280) == 8
+    assert _segmentation_settings(default.segmentation).stabilise == "auto"  # moved back past STILL_PX
+    for value in (True, False):
+        assert _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto",
+                                                        "stabilise": value})).stabilise is value
+    with pytest.raises(ConfigError, match="data.segmentation: stabilise must be true, false or \"auto\", got 'often'"):
+        _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "stabilise": "often"}))
     for bad in (0, 2.5, "wide"):
         with pytest.raises(ConfigError, match=f"data.segmentation: coverage_near_px must be a whole number of steps "
                                               f">= 1 or \"auto\", got {bad!r}"):

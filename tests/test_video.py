@@ -786,3 +786,91 @@ def test_local_linear_shading_reads_a_shaded_limb(fit, area_excess, spread_px2):
     assert spread_px2[0] < spread < spread_px2[1]
     with pytest.raises(ValueError, match="shading_fit"):
         SegmentationSettings(shading_fit="quadratic")
+
+
+# --- a camera held in the hand -------------------------------------------------------
+
+
+def _shaken_scene(offsets: np.ndarray, height: int = 120, width: int = 160, seed: int = 3) -> np.ndarray:
+    """(T, H, W, 3) uint8 BGR frames of a smooth random texture with a dark disc (radius 8 px)
+    crossing it from left to right, each whole frame then moved by its row of (T, 2) ``offsets``
+    (x, y; Lanczos): what a still camera sees, shaken. Zero offsets give the still clip."""
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, (height, width, 3)).astype(np.float32), (0, 0), 2.0)
+    texture = 128 + 2.5 * (texture - texture.mean())
+    count, samples = len(offsets), 4
+    v, u = (np.mgrid[0:height * samples, 0:width * samples] + 0.5) / samples - 0.5
+    frames = []
+    for t, (dx, dy) in enumerate(offsets):
+        cx = 30.0 + 100.0 * t / max(count - 1, 1)
+        cover = ((u - cx) ** 2 + (v - 60.0) ** 2 <= 8.0 ** 2).reshape(height, samples, width, samples).mean((1, 3))
+        frame = texture * (1 - cover[..., None]) + np.array([40.0, 60.0, 200.0]) * cover[..., None]
+        frame = cv2.warpAffine(frame.astype(np.float32), np.float32([[1, 0, dx], [0, 1, dy]]), (width, height),
+                               flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+        frames.append(np.clip(np.rint(frame), 0, 255).astype(np.uint8))
+    return np.stack(frames)
+
+
+def _shake(count: int = 20, amplitude: float = 1.5, seed: int = 1) -> np.ndarray:
+    """(count, 2) a smooth random shake (px), about its median."""
+    offsets = ndimage.gaussian_filter1d(np.random.default_rng(seed).normal(size=(count, 2)), 2.0, axis=0)
+    offsets = amplitude * offsets / offsets.std(0)
+    return offsets - np.median(offsets, 0)
+
+
+def test_camera_motion_reads_a_known_shake():
+    """``camera_motion`` reads a smooth shake of 1.5 px RMS per axis (up to 3.4 px) to a few
+    hundredths of a pixel, with the moving disc left out, and a still clip as still."""
+    from torchfit.video import camera_motion
+
+    offsets = _shake()
+    found = camera_motion(_shaken_scene(offsets))
+    error = np.linalg.norm(found - offsets, axis=1)
+    assert np.sqrt((error ** 2).mean()) < 0.03 and error.max() < 0.08
+    still = camera_motion(_shaken_scene(np.zeros_like(offsets)))
+    assert np.abs(still).max() < 0.02
+
+
+def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
+    """A clip shaken by 1.5 px RMS (stored losslessly) is moved back before it is segmented
+    (``stabilise="auto"``, past ``STILL_PX``): its masks' centroids are the still clip's to a tenth
+    of a pixel, the frames as segmented (``observed_frames``) are the still ones, and the report's
+    sentence says so. With ``stabilise=False`` the offsets are measured alike, the centroids
+    miss the still clip's by more than a pixel RMS, and the sentence warns that the model takes a
+    still camera."""
+    from torchfit.video import STILL_PX, camera_motion_note, observed_frames
+
+    offsets = _shake()
+    folders = {}
+    for name, shift in (("still", np.zeros_like(offsets)), ("shaken", offsets)):
+        folders[name] = tmp_path / name
+        folders[name].mkdir()
+        for t, frame in enumerate(_shaken_scene(shift)):
+            cv2.imwrite(str(folders[name] / f"{t:03d}.png"), frame)
+    still = load_observation(folders["still"], fps=60.0)
+    moved = load_observation(folders["shaken"], fps=60.0)
+    kept = load_observation(folders["shaken"], fps=60.0, settings=SegmentationSettings(stabilise=False))
+    assert not still.stabilised and still.camera_moved_px < STILL_PX and camera_motion_note(still) == ""
+    assert moved.stabilised and not kept.stabilised
+    np.testing.assert_allclose(moved.camera_motion, kept.camera_motion)
+    assert moved.camera_moved_px == pytest.approx(np.linalg.norm(offsets, axis=1).max(), abs=0.1)
+
+    def centroids(observation):
+        m = raw_moments(observation.masks.astype(np.float64))
+        return m[:, 1:3] / m[:, :1]
+
+    assert np.abs(centroids(moved) - centroids(still)).max() < 0.1
+    # not moved back: the shake as filmed, and a background median blurred by it
+    assert np.sqrt(((centroids(kept) - centroids(still)) ** 2).sum(1).mean()) > 1.0
+    inner = (slice(None), slice(8, -8), slice(8, -8))
+    assert np.abs(observed_frames(moved).astype(float) - observed_frames(still).astype(float))[inner].mean() < 1.0
+    assert "moved back before they were segmented" in camera_motion_note(moved)
+    assert "not moved back" in camera_motion_note(kept) and "still camera" in camera_motion_note(kept)
+
+
+@pytest.mark.parametrize("value", ["yes", 1, None])
+def test_stabilise_takes_true_false_or_auto(value):
+    with pytest.raises(ValueError, match=f'stabilise must be true, false or "auto", got {value!r}'):
+        SegmentationSettings(stabilise=value)
+    for good in (True, False, "auto"):
+        assert SegmentationSettings(stabilise=good).stabilise == good

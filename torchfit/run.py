@@ -81,11 +81,10 @@ def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings
     soft coverage (``coverage``: the motion blur modelled, the path measured with it) and none
     elsewhere; ``coverage_near_px`` absent or null is the settings' own band."""
     passes, band = node.get("albedo_passes"), node.get("coverage_near_px")
-    stabilise = node.get("stabilise", "auto")
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
                                     albedo_passes=(1 if coverage else 0) if passes is None else int(passes),
-                                    stabilise=stabilise if isinstance(stabilise, bool) else str(stabilise),
+                                    stabilise=node.get("stabilise", "auto"),
                                     **({} if band is None else {"coverage_near_px": _band(band)}))
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None

@@ -90,6 +90,7 @@ STILL_PX = 0.25
 # (or another mover's) and are left out of the registration, grown by MOTION_OBJECT_GROW_PX
 MOTION_OBJECT_DIFF = 20.0
 MOTION_OBJECT_GROW_PX = 9
+MOTION_PYRAMID_MIN_PX = 48  # camera_motion's coarsest level keeps at least this many pixels a side
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
 BAND_REFERENCE_STEPS, BAND_REFERENCE_PIXELS = 4, 640 * 480
 
@@ -462,48 +463,60 @@ def stabilised(frames: np.ndarray, offsets: np.ndarray) -> np.ndarray:
                      for frame, (dx, dy) in zip(frames, offsets)])
 
 
-def camera_motion(frames: np.ndarray, passes: int = 3) -> np.ndarray:
+def _ecc_shift(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None) -> tuple[float, float]:
+    """The move ``(dx, dy)`` (px) of (H, W) float32 ``image`` against ``reference`` by ECC
+    (``cv2.findTransformECC``, a translation) over the ``valid`` pixels (all when None), coarse to
+    fine on a Gaussian pyramid (halved while the smaller side stays at least
+    :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none. A level where
+    ECC does not converge keeps the coarser estimate."""
+    levels = [(reference, image, None if valid is None else valid.astype(np.uint8))]
+    while min(levels[-1][0].shape) >= 2 * MOTION_PYRAMID_MIN_PX:
+        ref, img, mask = levels[-1]
+        levels.append((cv2.pyrDown(ref), cv2.pyrDown(img),
+                       None if mask is None else cv2.resize(mask, (img.shape[1] // 2 + img.shape[1] % 2,
+                                                                   img.shape[0] // 2 + img.shape[0] % 2),
+                                                            interpolation=cv2.INTER_NEAREST)))
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    shift = np.zeros(2)
+    for level in range(len(levels) - 1, -1, -1):
+        ref, img, mask = levels[level]
+        scale = 2.0 ** level
+        warp = np.float32([[1, 0, shift[0] / scale], [0, 1, shift[1] / scale]])
+        try:
+            _, warp = cv2.findTransformECC(ref, img, warp, cv2.MOTION_TRANSLATION, criteria, mask, 1)
+        except cv2.error:
+            continue
+        shift = np.array([warp[0, 2], warp[1, 2]], float) * scale
+    return float(shift[0]), float(shift[1])
+
+
+def camera_motion(frames: np.ndarray, passes: int = 2) -> np.ndarray:
     """How each frame's background moved: (T, 2) offsets ``(x, y)`` in pixels of (T, H, W, 3)
     uint8 BGR ``frames`` against the clip's background, about their median (so a still camera
     reads zeros). A whole-image move, what a small turn of a camera held in the hand does to a
     far background; a turn about the line of sight or a move towards the scene is not measured.
 
-    Each pass registers every frame's grey levels against the median of the frames moved back
-    by the offsets so far (:func:`stabilised`), with the object left out: pixels more than
+    Each pass registers every frame's grey levels, moved back by the offsets so far
+    (:func:`stabilised`), against the median of those frames (:func:`_ecc_shift`), and adds the
+    move it finds. From the second pass on the object is left out: pixels more than
     :data:`MOTION_OBJECT_DIFF` grey levels off that median, grown by
-    :data:`MOTION_OBJECT_GROW_PX`, take the median's value (from the second pass on). The
-    passes before the last correlate phases (``cv2.phaseCorrelate``, a Hann window), which
-    finds a move of many pixels; the last refines it by ECC (``cv2.findTransformECC``, a
-    translation, the object masked), which phase correlation alone needs to be accurate: on
-    the concealed recordings moved by a known smooth shake of 1-2 px RMS the offsets read
-    0.03 px RMS off, and still ones 0.006-0.012 px RMS (experiments/discover/HISTORY.md, *A
-    camera that is not quite still*). Where ECC does not converge, the phase correlation's
-    offset stays."""
+    :data:`MOTION_OBJECT_GROW_PX`, take the median's value and are masked. On four concealed
+    recordings moved by a known smooth shake of 1-2 px RMS (up to 7.6 px) the offsets read
+    0.031-0.034 px RMS off; a still one reads at most 0.008 px (experiments/discover/HISTORY.md,
+    *A camera that is not quite still*). The pyramid's coarsest level sets how far a move can be
+    found: a few pixels on a 160 x 120 clip, more on larger frames."""
     grey = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames])
-    count, height, width = grey.shape
-    offsets = np.zeros((count, 2))
-    window = cv2.createHanningWindow((width, height), cv2.CV_32F)
+    offsets = np.zeros((len(grey), 2))
     grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
     for step in range(passes):
         moved = np.stack([_shifted(g, -dx, -dy, cv2.INTER_LINEAR) for g, (dx, dy) in zip(grey, offsets)])
         reference = np.median(moved, axis=0).astype(np.float32)
-        for t in range(count):
-            if step == 0:
-                still, image = np.ones((height, width), bool), moved[t]
-            else:
+        for t in range(len(grey)):
+            still, image = None, moved[t]
+            if step > 0:
                 still = cv2.dilate((np.abs(moved[t] - reference) > MOTION_OBJECT_DIFF).astype(np.uint8), grow) == 0
                 image = np.where(still, moved[t], reference).astype(np.float32)
-            if step < passes - 1:
-                (dx, dy), _ = cv2.phaseCorrelate(reference, image, window)
-            else:
-                try:
-                    _, warp = cv2.findTransformECC(reference, image, np.eye(2, 3, dtype=np.float32),
-                                                   cv2.MOTION_TRANSLATION, criteria, still.astype(np.uint8), 1)
-                    dx, dy = float(warp[0, 2]), float(warp[1, 2])
-                except cv2.error:
-                    dx = dy = 0.0
-            offsets[t] += (dx, dy)
+            offsets[t] += _ecc_shift(reference, image, still)
     return offsets - np.median(offsets, axis=0)
 
 
