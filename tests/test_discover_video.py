@@ -1319,6 +1319,10 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     first, last = content["span_frames"]
     assert 0 <= first < last and set(content["criterion_frames"]) <= set(range(first, last + 1))
     assert any(line.startswith("Criterion: Huber's loss at 2 noise units") for line in content["report"])
+    # the shipped clip is filmed from a still camera: measured, not moved back, and not reported
+    motion = np.array(content["camera_motion_px"])
+    assert motion.shape[1] == 2 and np.abs(motion).max() < 0.05 and content["stabilised"] is False
+    assert not any(line.startswith("The camera moved") for line in content["report"])
 
 
 def test_robust_setting_is_hubers_on_the_exposure_path_by_default():
