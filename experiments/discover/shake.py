@@ -1,6 +1,6 @@
 """A camera that is not quite still: a concealed recording refilmed with a small shake.
 
-    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S]
+    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo]
     python -m torchfit experiment=discover_video data.video=DIR/NAME_shakeA/video.mp4 \
         object.mesh=DIR/NAME_shakeA/mesh.obj object.density=D camera.file=DIR/NAME_shakeA/camera.json
 
@@ -13,6 +13,11 @@ second encoding alone. Each amplitude's folder ``DIR/NAME_shake<A>/`` gets the v
 recording's ``mesh.obj``, ``camera.json`` and ``truth.json``, and ``shake.json`` with the offsets.
 A move of the whole image is what a small turn of the camera does to a far background and, to
 first order, to the object (HISTORY.md, *A camera that is not quite still*).
+
+``--undo`` also writes ``DIR/NAME_shake<A>_undone/``: the refilmed video's frames moved back by
+the shake's own offsets (``torchfit.video.stabilised``) as lossless PNGs, with the same files
+beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
+the frames back costs when the offsets are exact.
 """
 
 from __future__ import annotations
@@ -84,6 +89,22 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0) -> Path:
     return target
 
 
+def undo(target: Path) -> Path:
+    """The refilmed recording ``target``'s frames moved back by its shake's own offsets, as PNGs
+    in ``<target>_undone/`` with its other files; returns that folder."""
+    from torchfit.video import _read_video, stabilised
+
+    frames, _ = _read_video(target / "video.mp4", 0, None)
+    offsets = np.array(json.loads((target / "shake.json").read_text())["offsets_px"])
+    undone = target.with_name(target.name + "_undone")
+    undone.mkdir(exist_ok=True)
+    for t, frame in enumerate(stabilised(frames, offsets)):
+        cv2.imwrite(str(undone / f"{t:03d}.png"), frame)
+    for name in ("mesh.obj", "camera.json", "truth.json", "shake.json"):
+        shutil.copy(target / name, undone / name)
+    return undone
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("set", help="a folder of concealed recordings beside this file (recordings, recordings_fresh2)")
@@ -91,12 +112,16 @@ def main(argv=None) -> None:
     ap.add_argument("amplitudes", type=float, nargs="+", help="RMS of the shake on each axis, px")
     ap.add_argument("--out", type=Path, default=HERE / "recordings_shake", help="where the refilmed folders go")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--undo", action="store_true", help="also the frames moved back by the shake's own offsets (PNGs)")
     args = ap.parse_args(argv)
     folder = HERE / args.set / args.name
     if not (folder / "truth.json").exists():
         raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
     for amplitude in args.amplitudes:
-        print(make(folder, amplitude, args.out, args.seed), flush=True)
+        target = make(folder, amplitude, args.out, args.seed)
+        print(target, flush=True)
+        if args.undo:
+            print(undo(target), flush=True)
 
 
 if __name__ == "__main__":
