@@ -1,6 +1,6 @@
 """A camera that is not quite still: a concealed recording refilmed with a small shake.
 
-    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo]
+    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo] [--roll DEG]
     python -m torchfit experiment=discover_video data.video=DIR/NAME_shakeA/video.mp4 \
         object.mesh=DIR/NAME_shakeA/mesh.obj object.density=D camera.file=DIR/NAME_shakeA/camera.json
 
@@ -13,6 +13,11 @@ second encoding alone. Each amplitude's folder ``DIR/NAME_shake<A>/`` gets the v
 recording's ``mesh.obj``, ``camera.json`` and ``truth.json``, and ``shake.json`` with the offsets.
 A move of the whole image is what a small turn of the camera does to a far background and, to
 first order, to the object (HISTORY.md, *A camera that is not quite still*).
+
+``--roll DEG`` turns each frame about the image centre as well, by a smooth random angle of
+``DEG`` degrees RMS (made like the offsets, from its own seed): a camera that also turns about
+its line of sight, which ``torchfit.video.camera_motion`` does not measure. Folders
+``NAME_shake<A>_roll<DEG>/``.
 
 ``--undo`` also writes ``DIR/NAME_shake<A>_undone/``: the refilmed video's frames moved back by
 the shake's own offsets (``torchfit.video.stabilised``) as lossless PNGs, with the same files
@@ -50,20 +55,24 @@ def shake_path(frames: int, amplitude: float, seed: int) -> np.ndarray:
     return amplitude * noise / noise.std(0)
 
 
-def shaken(frames: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(T, H, W, 3) uint8 ``frames`` each moved by its (2,) offset (x, y) in px, Lanczos, the border
+def shaken(frames: np.ndarray, offsets: np.ndarray, angles: np.ndarray | None = None) -> np.ndarray:
+    """(T, H, W, 3) uint8 ``frames`` each turned by its angle (degrees, about the image centre;
+    none when ``angles`` is None) and moved by its (2,) offset (x, y) in px, Lanczos, the border
     replicated."""
     out = np.empty_like(frames)
     height, width = frames.shape[1:3]
-    for t, (frame, (dx, dy)) in enumerate(zip(frames, offsets)):
-        out[t] = cv2.warpAffine(frame, np.float32([[1, 0, dx], [0, 1, dy]]), (width, height),
+    angles = np.zeros(len(frames)) if angles is None else angles
+    for t, (frame, (dx, dy), angle) in enumerate(zip(frames, offsets, angles)):
+        warp = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), float(angle), 1.0)
+        warp[:, 2] += (dx, dy)
+        out[t] = cv2.warpAffine(frame, warp.astype(np.float32), (width, height),
                                 flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
     return out
 
 
-def make(folder: Path, amplitude: float, out: Path, seed: int = 0) -> Path:
-    """The recording ``folder`` refilmed with a shake of ``amplitude`` px RMS into ``out``; returns
-    the new folder."""
+def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float = 0.0) -> Path:
+    """The recording ``folder`` refilmed with a shake of ``amplitude`` px RMS (and a turn about the
+    line of sight of ``roll`` degrees RMS) into ``out``; returns the new folder."""
     import make_recordings as mr
 
     from torchfit.video import _read_video
@@ -74,18 +83,20 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0) -> Path:
     spec = truth["spec"]
     frames, _ = _read_video(folder / "video.mp4", 0, None)  # BGR
     offsets = shake_path(len(frames), amplitude, seed + zlib.crc32(folder.name.encode()))
-    target = out / f"{folder.name}_shake{amplitude:g}"
+    angles = shake_path(len(frames), roll, seed + 1 + zlib.crc32(folder.name.encode()))[:, 0] if roll else None
+    target = out / (f"{folder.name}_shake{amplitude:g}" + (f"_roll{roll:g}" if roll else ""))
     target.mkdir(parents=True, exist_ok=True)
     writer = mr.VideoWriter(target / "video.mp4", SimpleNamespace(
         codec=spec["codec"], crf=spec["crf"], fps=spec["fps"], fps_stated=spec.get("fps_stated"),
         transfer=spec.get("transfer", "linear")), frames.shape[2], frames.shape[1])
-    for frame in shaken(frames, offsets):
+    for frame in shaken(frames, offsets, angles):
         writer.write(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
     writer.release()
     for name in ("mesh.obj", "camera.json", "truth.json"):
         shutil.copy(folder / name, target / name)
     (target / "shake.json").write_text(json.dumps({"source": str(folder), "amplitude_px": amplitude,
-                                                   "smooth_frames": SMOOTH_FRAMES, "offsets_px": offsets.tolist()}))
+                                                   "smooth_frames": SMOOTH_FRAMES, "offsets_px": offsets.tolist(),
+                                                   "roll_deg": None if angles is None else angles.tolist()}))
     return target
 
 
@@ -113,12 +124,16 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=Path, default=HERE / "recordings_shake", help="where the refilmed folders go")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--undo", action="store_true", help="also the frames moved back by the shake's own offsets (PNGs)")
+    ap.add_argument("--roll", type=float, default=0.0, metavar="DEG",
+                    help="also turn each frame about the image centre, DEG degrees RMS")
     args = ap.parse_args(argv)
+    if args.undo and args.roll:
+        raise SystemExit("--undo moves the frames back by the shake's offsets only; it does not take --roll")
     folder = HERE / args.set / args.name
     if not (folder / "truth.json").exists():
         raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
     for amplitude in args.amplitudes:
-        target = make(folder, amplitude, args.out, args.seed)
+        target = make(folder, amplitude, args.out, args.seed, args.roll)
         print(target, flush=True)
         if args.undo:
             print(undo(target), flush=True)
