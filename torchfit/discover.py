@@ -510,7 +510,7 @@ class PointsProblem:
         return ModelFit(effects, full.rss, full.n_obs, full.n_free, self.describe(full),
                         math.sqrt(full.rss / full.n_obs), float(np.mean(split_rms)), fits,
                         wald=self.wald(full), heldout_params=heldout_params,
-                        heldout_track_median=float(np.mean(split_median)) if self.data.batch > 1 else None)
+                        heldout_track_median=(float(np.mean(split_median)) if self.data.batch > 1 else None))
 
     def wald(self, fit: PointFit) -> dict:
         """``{effect: W}``: the Wald statistic of each effect's shared parameters against their null
@@ -913,8 +913,8 @@ def discover_points(data: PointData, *, area: float, mass: float, moment: float,
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
         "noise_rms_m": math.sqrt(problem.noise_var),
         "models": [{"effects": list(f.effects), "rms_m": f.fit_rms, "heldout_rms_m": f.heldout_rms,
-                    "heldout_track_median_m": f.heldout_track_median, "bic": _criterion(f, problem.noise_var)[1], "n_obs": f.n_obs, "n_free": f.n_free,
-                    "params": f.params} for f in chain],
+                    "heldout_track_median_m": f.heldout_track_median, "bic": _criterion(f, problem.noise_var)[1],
+                    "n_obs": f.n_obs, "n_free": f.n_free, "params": f.params} for f in chain],
         "tracks": len(data.names),
         "samples": int(data.weights.sum()),
         "settings": asdict(settings),

@@ -115,7 +115,8 @@ def write_outputs(out_dir: Path, result: FitResult, problem: Problem, observatio
         "source": str(observation.source),
         # each frame's background offset (x, y) px against the clip's, and whether the frames were
         # moved back by it before the segmentation (torchfit.video.camera_motion)
-        "camera_motion_px": None if observation.camera_motion is None else np.asarray(observation.camera_motion).tolist(),
+        "camera_motion_px": (None if observation.camera_motion is None
+                             else np.asarray(observation.camera_motion).tolist()),
         "stabilised": bool(observation.stabilised),
         "provenance": provenance(observation.source, observed),
         "stages": [{"stage": name, "seconds": sec, "best_loss": (None if math.isnan(loss) else loss),
