@@ -1559,8 +1559,9 @@ class VideoProblem:
         its two neighbours by more than ``jump_sigmas`` jitter standard deviations (a failed
         segmentation, e.g. a blurred first frame; None: none is): missing physics is smooth in
         time (:func:`jump_outliers`, at once or, ``jump_one_at_a_time``, worst first), and the
-        ``jump_neighbours`` frames on either side of each go with it. Outliers are left out of every model's criterion and listed in the report. Kept, such
-        frames cost right names even under Huber's loss (experiments/discover/HISTORY.md,
+        ``jump_neighbours`` frames on either side of each go with it. Outliers are left out of
+        every model's criterion and listed in the report. Kept, such frames cost right names
+        even under Huber's loss (experiments/discover/HISTORY.md,
         forty-fifth session).
         """
         with torch.no_grad():
@@ -1898,8 +1899,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
                                                None if withheld else unexplained, content["size_mismatch"],
                                                content["iou_baseline"]["mean_fitted"],
                                                located_heldout) + span_lines(int(span[0]))
-    if camera_motion_note(observation):
-        report.append(camera_motion_note(observation))
+    if note := camera_motion_note(observation):
+        report.append(note)
     content = _jsonable(content)
     if out_dir is not None:
         out_dir = Path(out_dir)

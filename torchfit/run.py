@@ -349,8 +349,8 @@ def fit_recording(video: str | Path, shape: Shape, camera: Camera, settings: Sea
                  f"{int(observation.used.sum())} usable" + (" (masks from cache)" if observation.from_cache else ""))
         if observation.transfer_note:
             progress(_transfer_line(observation, segmentation))
-        if camera_motion_note(observation):
-            progress(camera_motion_note(observation))
+        if note := camera_motion_note(observation):
+            progress(note)
     problem, span = build_problem(observation, shape, camera, g=g, dtype=dtype, device=torch.device(device))
     clock = time.perf_counter()
     result = fit(problem, settings, progress=progress)
@@ -537,8 +537,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
                                    settings=segmentation)
     if observation.transfer_note:
         ctx["progress"](_transfer_line(observation, segmentation))
-    if camera_motion_note(observation):
-        ctx["progress"](camera_motion_note(observation))
+    if note := camera_motion_note(observation):
+        ctx["progress"](note)
     if auto and observation.kind == "masks":  # the blur's path was measured on frames, not on given masks
         exposure = None
         ctx["progress"]("motion blur not modelled: a folder of masks has no soft coverage to read it from "

@@ -290,9 +290,7 @@ class Observation:
     @property
     def camera_moved_px(self) -> float:
         """The largest background offset of any frame (px; 0 without a measurement)."""
-        if self.camera_motion is None or not len(self.camera_motion):
-            return 0.0
-        return float(np.linalg.norm(self.camera_motion, axis=1).max())
+        return 0.0 if self.camera_motion is None else _largest_offset(self.camera_motion)
 
     @property
     def times(self) -> np.ndarray:
@@ -433,16 +431,20 @@ def observed_frames(observation: Observation, positions=None) -> np.ndarray:
     return frames
 
 
+def _largest_offset(offsets: np.ndarray) -> float:
+    """The largest length of (T, 2) ``offsets`` (px; 0 for none)."""
+    return float(np.linalg.norm(offsets, axis=1).max(initial=0.0))
+
+
 def camera_motion_note(observation: Observation) -> str:
     """A sentence on the camera's motion for the log and the report ("" for mask input, or when
     no frame's background moved more than :data:`STILL_PX`)."""
-    moved = observation.camera_moved_px
-    if observation.camera_motion is None or moved <= STILL_PX:
+    if observation.camera_moved_px <= STILL_PX:
         return ""
-    rms = float(np.sqrt((observation.camera_motion ** 2).sum(1).mean()))
-    frame = int(observation.frame_indices[int(np.argmax(np.linalg.norm(observation.camera_motion, axis=1)))])
-    line = (f"The camera moved: the background of frame {frame} lies {moved:.2f} px from the clip's "
-            f"(RMS {rms:.2f} px over the frames)")
+    lengths = np.linalg.norm(observation.camera_motion, axis=1)
+    frame = int(observation.frame_indices[int(np.argmax(lengths))])
+    line = (f"The camera moved: the background of frame {frame} lies {lengths.max():.2f} px from the clip's "
+            f"(RMS {float(np.sqrt((lengths ** 2).mean())):.2f} px over the frames)")
     if observation.stabilised:
         return line + "; the frames were moved back before they were segmented (data.segmentation.stabilise)."
     return line + ("; the frames were not moved back (data.segmentation.stabilise=false), and the model "
@@ -1296,8 +1298,7 @@ def load_observation(
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
         motion = camera_motion(frames)
-        moved_back = settings.stabilise is True or (
-            settings.stabilise == "auto" and float(np.linalg.norm(motion, axis=1).max(initial=0.0)) > STILL_PX)
+        moved_back = settings.stabilise is True or (settings.stabilise == "auto" and _largest_offset(motion) > STILL_PX)
         if moved_back:
             frames = stabilised(frames, motion)
         segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None)

@@ -1254,19 +1254,24 @@ def _coverage_errors(folder: Path, settings: list[dict]) -> tuple[list[np.ndarra
     (:data:`torchfit.residuals.CHANNELS`; ``shape`` and ``orientation`` along the seen outline's
     long axis, as :func:`torchfit.residuals.channel_values` takes it without one). Also
     the exact centroid's (T,) speed, px per frame."""
+    truth, shape, camera = recording_parts(folder)
+    mid, averaged = _exact_moments(truth, shape, camera)
+    out = [_channel_errors(load_observation(str(folder / "video.mp4"), camera=camera,
+                                            settings=SegmentationSettings(**changes)), averaged)
+           for changes in settings]
+    return out, np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)
+
+
+def _channel_errors(observation, averaged: torch.Tensor) -> np.ndarray:
+    """(C, T) channel errors (:data:`torchfit.residuals.CHANNELS`) of ``observation``'s soft
+    coverage against the (T, 6) raw moments ``averaged`` (:func:`_exact_moments`' second)."""
     from torchfit.losses import central_moments
     from torchfit.residuals import CHANNELS, channel_values
 
-    truth, shape, camera = recording_parts(folder)
-    mid, averaged = _exact_moments(truth, shape, camera)
     exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
-    out = []
-    for changes in settings:
-        observation = load_observation(str(folder / "video.mp4"), camera=camera, settings=SegmentationSettings(**changes))
-        seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
-        values = channel_values(seen, exact)
-        out.append(np.stack([np.asarray(values[c], np.float64) for c in CHANNELS]))
-    return out, np.linalg.norm(np.gradient(mid[1].numpy(), axis=0), axis=1)
+    seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
+    values = channel_values(seen, exact)
+    return np.stack([np.asarray(values[c], np.float64) for c in CHANNELS])
 
 
 def _lag_one(values: np.ndarray) -> float:
@@ -1371,14 +1376,12 @@ def resegment(folder: Path, seed: int = 0) -> dict:
     noise floor (:func:`_frame_noise`), the slow part (:func:`_slow` about the median) and the
     spread about the median; and the correlation of ``e`` with ``b``."""
     import tempfile
-    from types import SimpleNamespace
 
     import cv2
-    import make_recordings as mr
+    from shake import store_like
 
-    from torchfit.losses import central_moments
     from torchfit.render import RenderMesh
-    from torchfit.residuals import CHANNELS, channel_values
+    from torchfit.residuals import CHANNELS
     from torchfit.video import _estimate_background, _read_video
 
     truth, shape, camera = recording_parts(folder)
@@ -1408,34 +1411,21 @@ def resegment(folder: Path, seed: int = 0) -> dict:
         clean.append(np.clip(np.rint(picture), 0, 255).astype(np.uint8))
         picture = picture + rng.normal(0.0, 255.0 * spec["noise_sigma"], frame.shape)
         pictures.append(np.clip(np.rint(picture), 0, 255).astype(np.uint8))
-    mid, averaged = _exact_moments(truth, shape, camera)
-    exact = central_moments(torch.as_tensor(np.asarray(averaged), dtype=torch.float64))
+    _, averaged = _exact_moments(truth, shape, camera)
 
-    def errors(observation) -> np.ndarray:  # (C, T)
-        seen = central_moments(torch.as_tensor(observation.coverage_moments, dtype=torch.float64))
-        values = channel_values(seen, exact)
-        return np.stack([np.asarray(values[c], np.float64) for c in CHANNELS])
+    def errors(source: Path, **kind) -> np.ndarray:  # (C, T)
+        return _channel_errors(load_observation(str(source), camera=camera, settings=settings, **kind), averaged)
 
-    video = errors(load_observation(str(folder / "video.mp4"), camera=camera, settings=settings))
+    video = errors(folder / "video.mp4")
     predicted = {}
     with tempfile.TemporaryDirectory() as tmp:
-        writer = mr.VideoWriter(Path(tmp) / "picture.mp4", SimpleNamespace(
-            codec=spec["codec"], crf=spec["crf"], fps=spec["fps"], fps_stated=spec.get("fps_stated"),
-            transfer="linear"), width, height)
-        for picture in pictures:
-            writer.write(cv2.cvtColor(picture, cv2.COLOR_BGR2RGB))
-        writer.release()
-        predicted["encoded"] = errors(load_observation(str(Path(tmp) / "picture.mp4"), camera=camera,
-                                                       settings=settings))
+        store_like(Path(tmp) / "picture.mp4", spec, np.stack(pictures))
+        predicted["encoded"] = errors(Path(tmp) / "picture.mp4")
         (Path(tmp) / "png").mkdir()
-        for t, picture in enumerate(pictures):
-            cv2.imwrite(str(Path(tmp) / "png" / f"{t:04d}.png"), picture)
-        predicted["lossless"] = errors(load_observation(str(Path(tmp) / "png"), kind="images", fps=spec["fps"],
-                                                        camera=camera, settings=settings))
-        for t, picture in enumerate(clean):
-            cv2.imwrite(str(Path(tmp) / "png" / f"{t:04d}.png"), picture)
-        predicted["clean"] = errors(load_observation(str(Path(tmp) / "png"), kind="images", fps=spec["fps"],
-                                                     camera=camera, settings=settings))
+        for name, frames_of in (("lossless", pictures), ("clean", clean)):
+            for t, picture in enumerate(frames_of):
+                cv2.imwrite(str(Path(tmp) / "png" / f"{t:04d}.png"), picture)
+            predicted[name] = errors(Path(tmp) / "png", kind="images", fps=spec["fps"])
 
     def figures(series: np.ndarray) -> dict:
         finite = series[np.isfinite(series)]

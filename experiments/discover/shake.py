@@ -70,11 +70,23 @@ def shaken(frames: np.ndarray, offsets: np.ndarray, angles: np.ndarray | None = 
     return out
 
 
+def store_like(path: Path, spec: dict, frames: np.ndarray) -> None:
+    """(T, H, W, 3) uint8 BGR ``frames`` stored as the video ``path`` the way the recording whose
+    truth.json ``spec`` is was stored: its codec, crf, stated frame rate and transfer tag
+    (``make_recordings.VideoWriter``)."""
+    import make_recordings as mr
+
+    writer = mr.VideoWriter(path, SimpleNamespace(
+        codec=spec["codec"], crf=spec["crf"], fps=spec["fps"], fps_stated=spec.get("fps_stated"),
+        transfer=spec.get("transfer", "linear")), frames.shape[2], frames.shape[1])
+    for frame in frames:
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+    writer.release()
+
+
 def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float = 0.0) -> Path:
     """The recording ``folder`` refilmed with a shake of ``amplitude`` px RMS (and a turn about the
     line of sight of ``roll`` degrees RMS) into ``out``; returns the new folder."""
-    import make_recordings as mr
-
     from torchfit.video import _read_video
 
     if not (amplitude >= 0):
@@ -86,12 +98,7 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float =
     angles = shake_path(len(frames), roll, seed + 1 + zlib.crc32(folder.name.encode()))[:, 0] if roll else None
     target = out / (f"{folder.name}_shake{amplitude:g}" + (f"_roll{roll:g}" if roll else ""))
     target.mkdir(parents=True, exist_ok=True)
-    writer = mr.VideoWriter(target / "video.mp4", SimpleNamespace(
-        codec=spec["codec"], crf=spec["crf"], fps=spec["fps"], fps_stated=spec.get("fps_stated"),
-        transfer=spec.get("transfer", "linear")), frames.shape[2], frames.shape[1])
-    for frame in shaken(frames, offsets, angles):
-        writer.write(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
-    writer.release()
+    store_like(target / "video.mp4", spec, shaken(frames, offsets, angles))
     for name in ("mesh.obj", "camera.json", "truth.json"):
         shutil.copy(folder / name, target / name)
     (target / "shake.json").write_text(json.dumps({"source": str(folder), "amplitude_px": amplitude,
