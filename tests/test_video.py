@@ -791,56 +791,101 @@ def test_local_linear_shading_reads_a_shaded_limb(fit, area_excess, spread_px2):
 # --- a camera held in the hand -------------------------------------------------------
 
 
-def _shaken_scene(offsets: np.ndarray, height: int = 120, width: int = 160, seed: int = 3) -> np.ndarray:
+def _shaken_scene(motion: np.ndarray, height: int = 120, width: int = 160, seed: int = 3) -> np.ndarray:
     """(T, H, W, 3) uint8 BGR frames of a smooth random texture with a dark disc (radius 8 px)
-    crossing it from left to right, each whole frame then moved by its row of (T, 2) ``offsets``
-    (x, y; Lanczos): what a still camera sees, shaken. Zero offsets give the still clip."""
+    crossing it from left to right, each whole frame then moved by its row of ``motion``: (T, 2)
+    shifts (x, y) or (T, 3) ``(dx, dy, turn)``, the turn in degrees about the image centre as
+    ``cv2.getRotationMatrix2D`` (Lanczos): what a still camera sees, shaken. Zeros give the
+    still clip."""
     rng = np.random.default_rng(seed)
     texture = cv2.GaussianBlur(rng.uniform(0, 255, (height, width, 3)).astype(np.float32), (0, 0), 2.0)
     texture = 128 + 2.5 * (texture - texture.mean())
-    count, samples = len(offsets), 4
+    count, samples = len(motion), 4
     v, u = (np.mgrid[0:height * samples, 0:width * samples] + 0.5) / samples - 0.5
     frames = []
-    for t, (dx, dy) in enumerate(offsets):
+    for t, row in enumerate(motion):
         cx = 30.0 + 100.0 * t / max(count - 1, 1)
         cover = ((u - cx) ** 2 + (v - 60.0) ** 2 <= 8.0 ** 2).reshape(height, samples, width, samples).mean((1, 3))
         frame = texture * (1 - cover[..., None]) + np.array([40.0, 60.0, 200.0]) * cover[..., None]
-        frame = cv2.warpAffine(frame.astype(np.float32), np.float32([[1, 0, dx], [0, 1, dy]]), (width, height),
+        warp = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), float(row[2]) if len(row) > 2 else 0.0, 1.0)
+        warp[:, 2] += row[:2]
+        frame = cv2.warpAffine(frame.astype(np.float32), warp.astype(np.float32), (width, height),
                                flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
         frames.append(np.clip(np.rint(frame), 0, 255).astype(np.uint8))
     return np.stack(frames)
 
 
-def _shake(count: int = 20, amplitude: float = 1.5, seed: int = 1) -> np.ndarray:
-    """(count, 2) a smooth random shake (px), about its median."""
-    offsets = ndimage.gaussian_filter1d(np.random.default_rng(seed).normal(size=(count, 2)), 2.0, axis=0)
-    offsets = amplitude * offsets / offsets.std(0)
-    return offsets - np.median(offsets, 0)
+def _shake(count: int = 20, amplitude: float = 1.5, seed: int = 1, turn: float = 0.0) -> np.ndarray:
+    """(count, 3) a smooth random shake ``(dx, dy, turn)``: ``amplitude`` px RMS per axis and
+    ``turn`` degrees RMS about the image centre, about its median."""
+    noise = ndimage.gaussian_filter1d(np.random.default_rng(seed).normal(size=(count, 3)), 2.0, axis=0)
+    motion = np.array([amplitude, amplitude, turn]) * noise / noise.std(0)
+    return motion - np.median(motion, 0)
+
+
+def test_motion_rows_and_matrices_are_inverse_and_a_turn_moves_the_corners_most():
+    """``_motion_rows`` reads back what ``_motion_matrices`` made; a pure turn by ``a`` about the
+    centre moves a corner, ``r`` from it, by ``2 r sin(a / 2)`` and the centre not at all; a
+    shift moves every pixel by its length."""
+    from torchfit.video import _largest_move, _motion_matrices, _motion_rows
+
+    size = (120, 160)
+    motion = np.array([[0.3, -1.2, 0.7], [-2.0, 0.5, -1.5], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(_motion_rows(_motion_matrices(motion, size), size), motion, atol=1e-12)
+    radius = np.hypot(159 / 2, 119 / 2)
+    assert _largest_move(np.array([[0.0, 0.0, 0.5]]), size) == pytest.approx(2 * radius * np.sin(np.radians(0.25)))
+    assert _largest_move(np.array([[3.0, 4.0, 0.0]]), size) == pytest.approx(5.0)
+    centre = _motion_matrices(np.array([[0.0, 0.0, 2.0]]), size)[0] @ np.array([159 / 2, 119 / 2, 1.0])
+    np.testing.assert_allclose(centre[:2], [159 / 2, 119 / 2], atol=1e-12)
+
+
+def test_unseen_border_is_marked_and_filled_with_the_background():
+    """A frame moved back by a shift of 3 px to the right did not see its last 3 columns, and
+    Lanczos drew the next 4 from them (``unseen_pixels``); a frame not moved saw everything.
+    Those pixels take the median of the frames that saw them, the rest stay as they were."""
+    from torchfit.video import LANCZOS_REACH_PX, _background_where_unseen, unseen_pixels
+
+    motion = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    unseen = unseen_pixels(motion, (20, 30))
+    assert not unseen[0].any() and not unseen[2].any()
+    np.testing.assert_array_equal(np.flatnonzero(unseen[1].any(0)), np.arange(30 - 3 - LANCZOS_REACH_PX, 30))
+    assert unseen[1].all(0)[-1]
+    frames = np.stack([np.full((20, 30, 3), v, np.uint8) for v in (10, 200, 30, 20)])
+    filled = _background_where_unseen(frames, unseen)
+    np.testing.assert_array_equal(filled[1][~unseen[1]], 200)
+    np.testing.assert_array_equal(filled[1][unseen[1]], 20)  # the median of 10, 30, 20
+    np.testing.assert_array_equal(filled[[0, 2, 3]], frames[[0, 2, 3]])
 
 
 def test_camera_motion_reads_a_known_shake():
     """``camera_motion`` reads a smooth shake of 1.5 px RMS per axis (up to 3.4 px) to a few
-    hundredths of a pixel, with the moving disc left out, and a still clip as still."""
+    hundredths of a pixel and no turn, with the moving disc left out; a turn of 0.5 deg RMS
+    about the line of sight to a few thousandths of a degree; a still clip as still."""
     from torchfit.video import camera_motion
 
-    offsets = _shake()
-    found = camera_motion(_shaken_scene(offsets))
-    error = np.linalg.norm(found - offsets, axis=1)
+    shift = _shake()
+    found = camera_motion(_shaken_scene(shift[:, :2]))
+    error = np.linalg.norm(found[:, :2] - shift[:, :2], axis=1)
     assert np.sqrt((error ** 2).mean()) < 0.03 and error.max() < 0.08
-    still = camera_motion(_shaken_scene(np.zeros_like(offsets)))
-    assert np.abs(still).max() < 0.02
+    assert np.abs(found[:, 2]).max() < 0.005
+    turned = _shake(amplitude=1.0, turn=0.5, seed=2)
+    found = camera_motion(_shaken_scene(turned))
+    error = np.linalg.norm(found[:, :2] - turned[:, :2], axis=1)
+    assert np.sqrt((error ** 2).mean()) < 0.03 and np.abs(found[:, 2] - turned[:, 2]).max() < 0.01
+    still = camera_motion(_shaken_scene(np.zeros((20, 2))))
+    assert np.abs(still[:, :2]).max() < 0.02 and np.abs(still[:, 2]).max() < 0.002
 
 
 def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
-    """A clip shaken by 1.5 px RMS (stored losslessly) is moved back before it is segmented
+    """A clip shaken by 1.5 px RMS and turned 0.5 deg RMS (stored losslessly) is moved back before it is segmented
     (``stabilise="auto"``, past ``STILL_PX``): its masks' centroids are the still clip's to a tenth
     of a pixel, the frames as segmented (``observed_frames``) are the still ones, and the report's
     sentence says so. With ``stabilise=False`` the offsets are measured alike, the centroids
     miss the still clip's by more than a pixel RMS, and the sentence warns that the model takes a
     still camera."""
-    from torchfit.video import STILL_PX, camera_motion_note, observed_frames
+    from torchfit.video import STILL_PX, _largest_move, camera_motion_note, observed_frames
 
-    offsets = _shake()
+    offsets = _shake(turn=0.5)
     folders = {}
     for name, shift in (("still", np.zeros_like(offsets)), ("shaken", offsets)):
         folders[name] = tmp_path / name
@@ -853,7 +898,7 @@ def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
     assert not still.stabilised and still.camera_moved_px < STILL_PX and camera_motion_note(still) == ""
     assert moved.stabilised and not kept.stabilised
     np.testing.assert_allclose(moved.camera_motion, kept.camera_motion)
-    assert moved.camera_moved_px == pytest.approx(np.linalg.norm(offsets, axis=1).max(), abs=0.1)
+    assert moved.camera_moved_px == pytest.approx(_largest_move(offsets, (120, 160)), abs=0.1)
 
     def centroids(observation):
         m = raw_moments(observation.masks.astype(np.float64))

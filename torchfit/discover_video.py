@@ -80,7 +80,7 @@ from .search import (
     candidate_poses,
     fit,
 )
-from .video import _boxes, camera_motion_note, raw_moments
+from .video import _boxes, camera_motion_fields, camera_motion_note, raw_moments
 
 __all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_NEIGHBOURS",
            "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
@@ -1869,10 +1869,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "candidates": list(video.candidates),
         "seconds": time.perf_counter() - clock,
         "provenance": provenance(observation.source, observation.masks),
-        # each frame's background offset (x, y) in px against the clip's, and whether the frames
-        # were moved back by it before the segmentation (torchfit.video.camera_motion)
-        "camera_motion_px": None if observation.camera_motion is None else observation.camera_motion.tolist(),
-        "stabilised": observation.stabilised,
+        **camera_motion_fields(observation),
     }
     if truth is not None:
         content["truth_effects"] = truth.get("effects", {})

@@ -20,6 +20,7 @@ from .render import full_window, render_silhouettes
 from .rotation import matrix_to_quat, quat_to_matrix, rotation_angle
 from .search import FitResult, Problem
 from .shape import Shape
+from .video import camera_motion_fields
 
 __all__ = ["simulate_recording", "write_outputs", "score_against_truth", "summary_text", "params_dict"]
 
@@ -113,11 +114,7 @@ def write_outputs(out_dir: Path, result: FitResult, problem: Problem, observatio
         "camera": {k: getattr(camera, k) for k in ("fx", "fy", "cx", "cy", "width", "height")},
         "fps": observation.fps,
         "source": str(observation.source),
-        # each frame's background offset (x, y) px against the clip's, and whether the frames were
-        # moved back by it before the segmentation (torchfit.video.camera_motion)
-        "camera_motion_px": (None if observation.camera_motion is None
-                             else np.asarray(observation.camera_motion).tolist()),
-        "stabilised": bool(observation.stabilised),
+        **camera_motion_fields(observation),
         "provenance": provenance(observation.source, observed),
         "stages": [{"stage": name, "seconds": sec, "best_loss": (None if math.isnan(loss) else loss),
                     "candidates": count} for name, sec, loss, count in result.history],

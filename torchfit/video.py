@@ -35,9 +35,10 @@ generated recordings name none, mix in their stored values and are read as they 
 
 A camera held in the hand moves a little between frames, and the model projects the flight
 through one still camera. Before anything above, each frame's move against the clip's background
-is measured (:func:`camera_motion`, a whole-image offset: what a small turn of the camera does);
-where the background moves by more than :data:`STILL_PX`, the frames are moved back
-(``SegmentationSettings.stabilise``) and the observation keeps the offsets.
+is measured (:func:`camera_motion`, a whole-image shift and a turn about the image centre: what
+a small turn of the camera does); where some pixel of the background moves by more than
+:data:`STILL_PX`, the frames are moved back (``SegmentationSettings.stabilise``) and the
+observation keeps the motion.
 
 Frames that should not be fitted keep their place in every per-frame array and are flagged
 ``used=False`` with a reason. Segmentation results are cached in ``cache_dir``.
@@ -67,7 +68,9 @@ __all__ = [
     "observed_frames",
     "camera_motion",
     "camera_motion_note",
+    "camera_motion_fields",
     "stabilised",
+    "unseen_pixels",
     "stored_transfer",
     "contact_sheet",
     "BACKGROUND_METHODS",
@@ -79,9 +82,10 @@ BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 COVERAGE_BANDS = ("steps", "motion")
 SHADING_FITS = ("constant", "linear")
-_CACHE_VERSION = 7
-# stabilise="auto": the frames are moved back when some frame's background lies more than this
-# many pixels from the clip's (camera_motion). The 160 still concealed recordings read at most
+_CACHE_VERSION = 8
+# stabilise="auto": the frames are moved back when some pixel of some frame's background lies more
+# than this many pixels from the clip's (camera_motion; a frame's corners, where a turn moves most).
+# The 160 still concealed recordings read at most
 # 0.013 px; refilmed with a smooth shake of 1 px RMS per axis, three of five controls named an
 # effect unless the frames were moved back, and none when they were (experiments/discover/
 # HISTORY.md, *A camera that is not quite still*).
@@ -90,6 +94,8 @@ STILL_PX = 0.25
 # (or another mover's) and are left out of the registration, grown by MOTION_OBJECT_GROW_PX
 MOTION_OBJECT_DIFF = 20.0
 MOTION_OBJECT_GROW_PX = 9
+# stabilised: Lanczos-4 draws on pixels this far away, so a moved-back frame's edge this deep is unseen
+LANCZOS_REACH_PX = 4
 MOTION_PYRAMID_MIN_PX = 48  # camera_motion's coarsest level keeps at least this many pixels a side
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
 BAND_REFERENCE_STEPS, BAND_REFERENCE_PIXELS = 4, 640 * 480
@@ -168,10 +174,11 @@ class SegmentationSettings:
         area_jump: a frame whose area differs by more than this factor from the median area
             of its clean neighbours (three each side) is flagged.
         max_background_frames: frames (evenly spaced) that feed the background model.
-        stabilise: move each frame back by its background's offset (:func:`camera_motion`)
-            before anything else, so a camera that shook in the hand is seen as a still one:
-            ``True``, ``False`` (the offsets are still measured and reported) or ``"auto"`` (the
-            default): when some frame's offset exceeds :data:`STILL_PX`.
+        stabilise: move each frame back by its background's move (:func:`camera_motion`, a shift
+            and a turn) before anything else, so a camera that shook in the hand is seen as a
+            still one: ``True``, ``False`` (the motion is still measured and reported) or
+            ``"auto"`` (the default): when some pixel of some frame moved more than
+            :data:`STILL_PX`.
     """
 
     method: str = "median"
@@ -262,8 +269,9 @@ class Observation:
             mask input; zeros where a frame has no object), undistorted with the masks (the
             coverage resampled through the camera's undistortion before its moments are taken);
             None for an observation made without them.
-        camera_motion: (T, 2) each frame's background offset ``(x, y)`` in pixels against the
-            clip's (:func:`camera_motion`); None for mask input.
+        camera_motion: (T, 3) each frame's background move ``(dx, dy, turn)`` against the clip's:
+            the image centre's shift in pixels and the turn about it in degrees
+            (:func:`camera_motion`); None for mask input.
         stabilised: True when the frames were moved back by ``camera_motion`` before they were
             segmented (``SegmentationSettings.stabilise``): the masks are then in the still
             camera's place, and :func:`observed_frames` gives the frames as segmented.
@@ -289,8 +297,8 @@ class Observation:
 
     @property
     def camera_moved_px(self) -> float:
-        """The largest background offset of any frame (px; 0 without a measurement)."""
-        return 0.0 if self.camera_motion is None else _largest_offset(self.camera_motion)
+        """The largest move of any pixel of any frame's background (px; 0 without a measurement)."""
+        return 0.0 if self.camera_motion is None else _largest_move(self.camera_motion, self.masks.shape[1:3])
 
     @property
     def times(self) -> np.ndarray:
@@ -431,46 +439,128 @@ def observed_frames(observation: Observation, positions=None) -> np.ndarray:
     return frames
 
 
-def _largest_offset(offsets: np.ndarray) -> float:
-    """The largest length of (T, 2) ``offsets`` (px; 0 for none)."""
-    return float(np.linalg.norm(offsets, axis=1).max(initial=0.0))
+def _motion_matrices(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T, 3, 3) the maps ``p -> R(p - c) + c + d`` of (T, 3) ``motion`` rows ``(dx, dy, turn)``
+    (px, px, degrees counter-clockwise on the screen, as ``cv2.getRotationMatrix2D``) about the
+    centre ``c`` of an image of ``size`` ``(H, W)``: where a still camera's pixel ``p`` lies in
+    the frame."""
+    height, width = size
+    centre = ((width - 1) / 2, (height - 1) / 2)
+    out = np.tile(np.eye(3), (len(motion), 1, 1))
+    for t, (dx, dy, turn) in enumerate(np.asarray(motion, float)):
+        out[t, :2] = cv2.getRotationMatrix2D(centre, float(turn), 1.0)
+        out[t, :2, 2] += (dx, dy)
+    return out
+
+
+def _motion_rows(matrices: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T, 3) rows ``(dx, dy, turn)`` of (T, 3, 3) rigid maps (:func:`_motion_matrices`' inverse)."""
+    turns = np.degrees(np.arctan2(matrices[:, 0, 1], matrices[:, 0, 0]))
+    turned = _motion_matrices(np.column_stack([np.zeros((len(turns), 2)), turns]), size)
+    return np.column_stack([matrices[:, :2, 2] - turned[:, :2, 2], turns])
+
+
+def _largest_move(motion: np.ndarray, size: tuple[int, int]) -> float:
+    """The largest move (px) of any pixel of an image of ``size`` ``(H, W)`` under any row of
+    (T, 3) ``motion`` (0 for none): a rigid map moves the corners most."""
+    if len(motion) == 0:
+        return 0.0
+    height, width = size
+    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
+    moved = np.einsum("tij,kj->tki", _motion_matrices(motion, size)[:, :2], corners)
+    return float(np.linalg.norm(moved - corners[None, :, :2], axis=2).max())
+
+
+def camera_motion_fields(observation: Observation) -> dict:
+    """What ``result.json`` and ``discover.json`` record of the camera's motion: each frame's
+    background move against the clip's, the image centre's shift ``camera_motion_px`` (T lists
+    ``[x, y]``) and the turn about it ``camera_turn_deg`` (T values, counter-clockwise on the
+    screen), both None for mask input, and ``stabilised``, whether the frames were moved back by
+    it before the segmentation (:func:`camera_motion`)."""
+    motion = observation.camera_motion
+    return {"camera_motion_px": None if motion is None else np.asarray(motion)[:, :2].tolist(),
+            "camera_turn_deg": None if motion is None else np.asarray(motion)[:, 2].tolist(),
+            "stabilised": bool(observation.stabilised)}
 
 
 def camera_motion_note(observation: Observation) -> str:
     """A sentence on the camera's motion for the log and the report ("" for mask input, or when
-    no frame's background moved more than :data:`STILL_PX`)."""
+    no pixel of any frame moved more than :data:`STILL_PX`)."""
     if observation.camera_moved_px <= STILL_PX:
         return ""
-    lengths = np.linalg.norm(observation.camera_motion, axis=1)
-    frame = int(observation.frame_indices[int(np.argmax(lengths))])
-    line = (f"The camera moved: the background of frame {frame} lies {lengths.max():.2f} px from the clip's "
-            f"(RMS {float(np.sqrt((lengths ** 2).mean())):.2f} px over the frames)")
+    size = observation.masks.shape[1:3]
+    moves = np.array([_largest_move(row[None], size) for row in observation.camera_motion])
+    shifts = np.linalg.norm(observation.camera_motion[:, :2], axis=1)
+    turns = np.abs(observation.camera_motion[:, 2])
+    frame = int(observation.frame_indices[int(np.argmax(moves))])
+    line = (f"The camera moved: a corner of frame {frame} lies {moves.max():.2f} px from the clip's "
+            f"(the centre's move RMS {float(np.sqrt((shifts ** 2).mean())):.2f} px, the turn about the "
+            f"line of sight RMS {float(np.sqrt((turns ** 2).mean())):.3f} deg over the frames)")
     if observation.stabilised:
         return line + "; the frames were moved back before they were segmented (data.segmentation.stabilise)."
     return line + ("; the frames were not moved back (data.segmentation.stabilise=false), and the model "
                    "takes a still camera: what it finds may be the camera's motion.")
 
 
-def _shifted(image: np.ndarray, dx: float, dy: float, flags: int) -> np.ndarray:
-    """``image`` moved by ``(dx, dy)`` px (a point at ``x`` goes to ``x + dx``), the border replicated."""
+def _moved_back(image: np.ndarray, matrix: np.ndarray, flags: int) -> np.ndarray:
+    """``image`` resampled where the (3, 3) rigid map ``matrix`` sends each pixel (the frame a still
+    camera would have taken, when ``matrix`` is the frame's motion), the border replicated."""
     height, width = image.shape[:2]
-    return cv2.warpAffine(image, np.float32([[1, 0, dx], [0, 1, dy]]), (width, height), flags=flags,
-                          borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpAffine(image, matrix[:2].astype(np.float32), (width, height),
+                          flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
 
 
-def stabilised(frames: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(T, H, W, C) ``frames`` each moved back by its (T, 2) ``offsets`` (:func:`camera_motion`),
-    resampled with Lanczos: the frames a still camera would have taken."""
-    return np.stack([_shifted(frame, -float(dx), -float(dy), cv2.INTER_LANCZOS4)
-                     for frame, (dx, dy) in zip(frames, offsets)])
+def stabilised(frames: np.ndarray, motion: np.ndarray) -> np.ndarray:
+    """(T, H, W, C) ``frames`` each moved back by its row ``(dx, dy, turn)`` of (T, 3) ``motion``
+    (:func:`camera_motion`), resampled with Lanczos: the frames a still camera would have taken."""
+    matrices = _motion_matrices(motion, frames.shape[1:3])
+    return np.stack([_moved_back(frame, matrix, cv2.INTER_LANCZOS4) for frame, matrix in zip(frames, matrices)])
 
 
-def _ecc_shift(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None) -> tuple[float, float]:
-    """The move ``(dx, dy)`` (px) of (H, W) float32 ``image`` against ``reference`` by ECC
-    (``cv2.findTransformECC``, a translation) over the ``valid`` pixels (all when None), coarse to
-    fine on a Gaussian pyramid (halved while the smaller side stays at least
-    :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none. A level where
-    ECC does not converge keeps the coarser estimate."""
+def unseen_pixels(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T, H, W) bool: the pixels of each frame moved back by its row of (T, 3) ``motion``
+    (:func:`stabilised`) that the camera did not see in that frame, or that Lanczos drew from
+    outside it (within :data:`LANCZOS_REACH_PX` of the frame's edge): the border filled by
+    replication."""
+    height, width = size
+    ones = np.ones((height, width), np.uint8)
+    grow = np.ones((2 * LANCZOS_REACH_PX + 1,) * 2, np.uint8)
+    seen = np.stack([cv2.erode(cv2.warpAffine(ones, m[:2].astype(np.float32), (width, height),
+                                              flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                              borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+                               grow, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+                     for m in _motion_matrices(motion, size)])
+    return seen == 0
+
+
+def _background_where_unseen(frames: np.ndarray, unseen: np.ndarray) -> np.ndarray:
+    """(T, H, W, C) ``frames`` with their (T, H, W) ``unseen`` pixels set to the median over the
+    frames that saw that pixel (the background there), so a border a frame did not see reads
+    as background rather than as something that moved; a pixel no frame saw keeps its value."""
+    band = unseen.any(axis=0)
+    if not band.any():
+        return frames
+    values = frames[:, band].astype(np.float32)  # (T, K, C)
+    hidden = unseen[:, band]
+    seen_by_some = ~hidden.all(axis=0)
+    values[hidden] = np.nan
+    median = np.zeros(values.shape[1:], np.float32)
+    median[seen_by_some] = np.nanmedian(values[:, seen_by_some], axis=0)
+    fill = hidden & seen_by_some[None]
+    out = frames.copy()
+    part = out[:, band]
+    part[fill] = np.clip(np.rint(np.broadcast_to(median, part.shape)[fill]), 0, 255).astype(frames.dtype)
+    out[:, band] = part
+    return out
+
+
+def _ecc_motion(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    """(3, 3) the rigid map ``W`` (a turn and a shift, about the image origin) with
+    ``image(W(p)) ~ reference(p)`` for (H, W) float32 images, by ECC (``cv2.findTransformECC``,
+    ``MOTION_EUCLIDEAN``) over the ``valid`` pixels (all when None), coarse to fine on a Gaussian
+    pyramid (halved while the smaller side stays at least :data:`MOTION_PYRAMID_MIN_PX`), so a
+    move of several pixels is found from none. A level where ECC does not converge keeps the
+    coarser estimate."""
     levels = [(reference, image, None if valid is None else valid.astype(np.uint8))]
     while min(levels[-1][0].shape) >= 2 * MOTION_PYRAMID_MIN_PX:
         ref, img, mask = levels[-1]
@@ -479,48 +569,54 @@ def _ecc_shift(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | Non
                                                                    img.shape[0] // 2 + img.shape[0] % 2),
                                                             interpolation=cv2.INTER_NEAREST)))
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
-    shift = np.zeros(2)
+    found = np.eye(3)
     for level in range(len(levels) - 1, -1, -1):
         ref, img, mask = levels[level]
         scale = 2.0 ** level
-        warp = np.float32([[1, 0, shift[0] / scale], [0, 1, shift[1] / scale]])
+        warp = found[:2].astype(np.float32)
+        warp[:, 2] /= scale  # a pixel p of this level is the pixel scale * p of the finest
         try:
-            _, warp = cv2.findTransformECC(ref, img, warp, cv2.MOTION_TRANSLATION, criteria, mask, 1)
+            _, warp = cv2.findTransformECC(ref, img, warp, cv2.MOTION_EUCLIDEAN, criteria, mask, 1)
         except cv2.error:
             continue
-        shift = np.array([warp[0, 2], warp[1, 2]], float) * scale
-    return float(shift[0]), float(shift[1])
+        found[:2] = warp
+        found[:2, 2] *= scale
+    return found
 
 
 def camera_motion(frames: np.ndarray, passes: int = 2) -> np.ndarray:
-    """How each frame's background moved: (T, 2) offsets ``(x, y)`` in pixels of (T, H, W, 3)
-    uint8 BGR ``frames`` against the clip's background, about their median (so a still camera
-    reads zeros). A whole-image move, what a small turn of a camera held in the hand does to a
-    far background; a turn about the line of sight or a move towards the scene is not measured.
+    """How each frame's background moved: (T, 3) rows ``(dx, dy, turn)`` of (T, H, W, 3) uint8 BGR
+    ``frames`` against the clip's background: the move of the image centre in pixels and the turn
+    about it in degrees (counter-clockwise on the screen), so that a still camera's pixel ``p``
+    lies at ``R(turn)(p - c) + c + (dx, dy)`` in the frame (:func:`_motion_matrices`), taken about
+    the frames' median (a still camera reads zeros). What a small turn of a camera held in the
+    hand does to a far background: about an axis across the line of sight it shifts the picture,
+    about the line of sight it turns it. A move towards the scene, or one that shows parallax, is
+    not measured.
 
-    Each pass registers every frame's grey levels, moved back by the offsets so far
-    (:func:`stabilised`), against the median of those frames (:func:`_ecc_shift`), and adds the
-    move it finds. From the second pass on the object is left out: pixels more than
+    Each pass registers every frame's grey levels, moved back by the motion so far
+    (:func:`stabilised`), against the median of those frames (:func:`_ecc_motion`), and composes
+    the move it finds. From the second pass on the object is left out: pixels more than
     :data:`MOTION_OBJECT_DIFF` grey levels off that median, grown by
-    :data:`MOTION_OBJECT_GROW_PX`, take the median's value and are masked. On 20 concealed
-    recordings refilmed with a known smooth shake of 0.5-2 px RMS per axis (up to 7.7 px) the
-    offsets read 0.027-0.038 px RMS off; the 160 still ones read at most 0.013 px
-    (experiments/discover/HISTORY.md, *A camera that is not quite still*). The pyramid's
+    :data:`MOTION_OBJECT_GROW_PX`, take the median's value and are masked. The pyramid's
     coarsest level sets how far a move can be found: a few pixels on a 160 x 120 clip, more on
-    larger frames."""
+    larger frames (experiments/discover/HISTORY.md, *A camera that is not quite still*, *Taking
+    out a turn about the line of sight*)."""
+    size = frames.shape[1:3]
     grey = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames])
-    offsets = np.zeros((len(grey), 2))
+    matrices = np.tile(np.eye(3), (len(grey), 1, 1))
     grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
     for step in range(passes):
-        moved = np.stack([_shifted(g, -dx, -dy, cv2.INTER_LINEAR) for g, (dx, dy) in zip(grey, offsets)])
+        moved = np.stack([_moved_back(g, m, cv2.INTER_LINEAR) for g, m in zip(grey, matrices)])
         reference = np.median(moved, axis=0).astype(np.float32)
         for t in range(len(grey)):
             still, image = None, moved[t]
             if step > 0:
                 still = cv2.dilate((np.abs(moved[t] - reference) > MOTION_OBJECT_DIFF).astype(np.uint8), grow) == 0
                 image = np.where(still, moved[t], reference).astype(np.float32)
-            offsets[t] += _ecc_shift(reference, image, still)
-    return offsets - np.median(offsets, axis=0)
+            matrices[t] = matrices[t] @ _ecc_motion(reference, image, still)
+    typical = _motion_matrices(np.median(_motion_rows(matrices, size), axis=0)[None], size)[0]
+    return _motion_rows(matrices @ np.linalg.inv(typical), size)
 
 
 # --------------------------------------------------------------------------------------
@@ -1114,14 +1210,19 @@ def _boxes(masks: np.ndarray) -> np.ndarray:
     return boxes
 
 
-def _flag(masks: np.ndarray, second_frac: np.ndarray, settings: SegmentationSettings) -> list[str]:
-    """One reason per frame, ``""`` for frames fit to use."""
+def _flag(masks: np.ndarray, second_frac: np.ndarray, settings: SegmentationSettings,
+          unseen: np.ndarray | None = None) -> list[str]:
+    """One reason per frame, ``""`` for frames fit to use. ``unseen``: (T, H, W) bool, the border
+    each frame did not see (:func:`unseen_pixels`; none when None): a mask beside it touches the
+    frame's border."""
     areas = masks.sum(axis=(1, 2))
     reasons = []
     for t, mask in enumerate(masks):
+        beside_unseen = unseen is not None and bool(
+            (cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)[unseen[t]].any())
         if areas[t] < settings.min_area:
             reasons.append("no object")
-        elif mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
+        elif mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any() or beside_unseen:
             reasons.append("touches the image border")
         elif second_frac[t] >= settings.second_component_frac:
             reasons.append("several large components")
@@ -1298,9 +1399,10 @@ def load_observation(
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
         motion = camera_motion(frames)
-        moved_back = settings.stabilise is True or (settings.stabilise == "auto" and _largest_offset(motion) > STILL_PX)
+        moved_back = settings.stabilise is True or (settings.stabilise == "auto"
+                                                    and _largest_move(motion, frames.shape[1:3]) > STILL_PX)
         if moved_back:
-            frames = stabilised(frames, motion)
+            frames = _background_where_unseen(stabilised(frames, motion), unseen_pixels(motion, frames.shape[1:3]))
         segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
@@ -1320,7 +1422,12 @@ def load_observation(
         masks = _undistort(masks, camera)
     if kind == "masks":
         cover_moments = raw_moments(masks)
-    reasons = _flag(masks, second_frac, settings)
+    unseen = None
+    if moved_back:  # a mask that reaches a border the frame did not see may be cut there
+        unseen = unseen_pixels(motion, masks.shape[1:3])
+        if distorted:
+            unseen = _undistort(unseen, camera)
+    reasons = _flag(masks, second_frac, settings, unseen)
     if all(r == "no object" for r in reasons):
         raise ValueError(
             f"nothing moves in {str(path)!r}: no frame has an object "

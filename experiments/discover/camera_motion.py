@@ -3,12 +3,14 @@
     python experiments/discover/camera_motion.py SET... [--out FILE]
 
 For every recording in each ``SET`` (folders beside this file, e.g. ``recordings``
-``recordings_fresh1``, or any path holding recording folders): the largest and the RMS offset of
-its frames' backgrounds, in px, and where the folder holds ``shake.json`` (``shake.py``) the RMS
-and largest error of the offsets against the shake's own (both about their medians). The
-concealed recordings are filmed from a still camera: their largest offset is what
-``SegmentationSettings.stabilise="auto"`` must stay under (:data:`torchfit.video.STILL_PX`) to
-leave them as they were. Writes ``results/camera_motion.json`` (or ``--out``).
+``recordings_fresh1``, or any path holding recording folders): the largest move of any pixel of
+its frames' backgrounds (a corner), the RMS shift of the image centre, in px, and the RMS turn
+about it, in degrees; and where the folder holds ``shake.json`` (``shake.py``) the RMS and
+largest error of the centre's shift, the RMS error of the turn and of the largest corner's move
+against the shake's own (all about their medians). The concealed recordings are filmed from a
+still camera: their largest move is what ``SegmentationSettings.stabilise="auto"`` must stay
+under (:data:`torchfit.video.STILL_PX`) to leave them as they were. Writes
+``results/camera_motion.json`` (or ``--out``).
 """
 
 from __future__ import annotations
@@ -19,23 +21,34 @@ from pathlib import Path
 
 import numpy as np
 
-from torchfit.video import STILL_PX, _read_video, camera_motion
+from shake import shake_motion
+from torchfit.video import STILL_PX, _largest_move, _motion_matrices, _read_video, camera_motion
 
 HERE = Path(__file__).resolve().parent
 
 
 def measure(folder: Path) -> dict:
-    """The recording ``folder``'s offsets, summarised (and against its shake when it has one)."""
+    """The recording ``folder``'s motion, summarised (and against its shake when it has one)."""
     frames, _ = _read_video(folder / "video.mp4", 0, None)
-    offsets = camera_motion(frames)
-    size = np.linalg.norm(offsets, axis=1)
-    row = {"largest_px": float(size.max()), "rms_px": float(np.sqrt((size ** 2).mean()))}
+    size = frames.shape[1:3]
+    motion = camera_motion(frames)
+    shift = np.linalg.norm(motion[:, :2], axis=1)
+    row = {"largest_px": _largest_move(motion, size), "rms_px": float(np.sqrt((shift ** 2).mean())),
+           "turn_rms_deg": float(np.sqrt((motion[:, 2] ** 2).mean()))}
     if (folder / "shake.json").exists():
-        truth = np.array(json.loads((folder / "shake.json").read_text())["offsets_px"])
-        error = (offsets - np.median(offsets - truth, axis=0)) - truth
-        row["shake_rms_px"] = float(np.sqrt((truth ** 2).sum(1).mean()))
-        row["error_rms_px"] = float(np.sqrt((error ** 2).sum(1).mean()))
-        row["error_largest_px"] = float(np.linalg.norm(error, axis=1).max())
+        truth = shake_motion(json.loads((folder / "shake.json").read_text()))
+        found = motion - np.median(motion - truth, axis=0)
+        error = found - truth
+        height, width = size
+        corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
+        apart = np.einsum("tij,kj->tki", (_motion_matrices(found, size) - _motion_matrices(truth, size))[:, :2],
+                          corners)
+        row["shake_rms_px"] = float(np.sqrt((truth[:, :2] ** 2).sum(1).mean()))
+        row["shake_turn_rms_deg"] = float(np.sqrt((truth[:, 2] ** 2).mean()))
+        row["error_rms_px"] = float(np.sqrt((error[:, :2] ** 2).sum(1).mean()))
+        row["error_largest_px"] = float(np.linalg.norm(error[:, :2], axis=1).max())
+        row["turn_error_rms_deg"] = float(np.sqrt((error[:, 2] ** 2).mean()))
+        row["corner_error_rms_px"] = float(np.sqrt((np.linalg.norm(apart, axis=2).max(1) ** 2).mean()))
     return row
 
 
@@ -54,7 +67,7 @@ def main(argv=None) -> None:
         args.out.write_text(json.dumps(result, indent=1))
     still = [r["largest_px"] for r in result.values() if "shake_rms_px" not in r]
     if still:
-        print(f"{len(still)} without a shake: largest offset {max(still):.3f} px (median {np.median(still):.3f});"
+        print(f"{len(still)} without a shake: largest move {max(still):.3f} px (median {np.median(still):.3f});"
               f" STILL_PX {STILL_PX}")
 
 

@@ -16,11 +16,10 @@ first order, to the object (HISTORY.md, *A camera that is not quite still*).
 
 ``--roll DEG`` turns each frame about the image centre as well, by a smooth random angle of
 ``DEG`` degrees RMS (made like the offsets, from its own seed): a camera that also turns about
-its line of sight, which ``torchfit.video.camera_motion`` does not measure. Folders
-``NAME_shake<A>_roll<DEG>/``.
+its line of sight. Folders ``NAME_shake<A>_roll<DEG>/``; ``shake.json`` holds the angles too.
 
-``--undo`` also writes ``DIR/NAME_shake<A>_undone/``: the refilmed video's frames moved back by
-the shake's own offsets (``torchfit.video.stabilised``) as lossless PNGs, with the same files
+``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>]_undone/``: the refilmed video's frames moved
+back by the shake's own offsets and turns (``torchfit.video.stabilised``) as lossless PNGs, with the same files
 beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
 the frames back costs when the offsets are exact.
 """
@@ -70,6 +69,14 @@ def shaken(frames: np.ndarray, offsets: np.ndarray, angles: np.ndarray | None = 
     return out
 
 
+def shake_motion(shake: dict) -> np.ndarray:
+    """(T, 3) the motion rows ``(dx, dy, turn)`` of a ``shake.json``'s content, as
+    ``torchfit.video.camera_motion`` reads them (the same map as :func:`shaken`'s)."""
+    offsets = np.asarray(shake["offsets_px"], float)
+    turns = np.zeros(len(offsets)) if shake.get("roll_deg") is None else np.asarray(shake["roll_deg"], float)
+    return np.column_stack([offsets, turns])
+
+
 def store_like(path: Path, spec: dict, frames: np.ndarray) -> None:
     """(T, H, W, 3) uint8 BGR ``frames`` stored as the video ``path`` the way the recording whose
     truth.json ``spec`` is was stored: its codec, crf, stated frame rate and transfer tag
@@ -108,15 +115,15 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float =
 
 
 def undo(target: Path) -> Path:
-    """The refilmed recording ``target``'s frames moved back by its shake's own offsets, as PNGs
-    in ``<target>_undone/`` with its other files; returns that folder."""
+    """The refilmed recording ``target``'s frames moved back by its shake's own offsets and turns,
+    as PNGs in ``<target>_undone/`` with its other files; returns that folder."""
     from torchfit.video import _read_video, stabilised
 
     frames, _ = _read_video(target / "video.mp4", 0, None)
-    offsets = np.array(json.loads((target / "shake.json").read_text())["offsets_px"])
+    motion = shake_motion(json.loads((target / "shake.json").read_text()))
     undone = target.with_name(target.name + "_undone")
     undone.mkdir(exist_ok=True)
-    for t, frame in enumerate(stabilised(frames, offsets)):
+    for t, frame in enumerate(stabilised(frames, motion)):
         cv2.imwrite(str(undone / f"{t:03d}.png"), frame)
     for name in ("mesh.obj", "camera.json", "truth.json", "shake.json"):
         shutil.copy(target / name, undone / name)
@@ -130,12 +137,10 @@ def main(argv=None) -> None:
     ap.add_argument("amplitudes", type=float, nargs="+", help="RMS of the shake on each axis, px")
     ap.add_argument("--out", type=Path, default=HERE / "recordings_shake", help="where the refilmed folders go")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--undo", action="store_true", help="also the frames moved back by the shake's own offsets (PNGs)")
+    ap.add_argument("--undo", action="store_true", help="also the frames moved back by the shake's own motion (PNGs)")
     ap.add_argument("--roll", type=float, default=0.0, metavar="DEG",
                     help="also turn each frame about the image centre, DEG degrees RMS")
     args = ap.parse_args(argv)
-    if args.undo and args.roll:
-        raise SystemExit("--undo moves the frames back by the shake's offsets only; it does not take --roll")
     folder = HERE / args.set / args.name
     if not (folder / "truth.json").exists():
         raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
