@@ -210,6 +210,26 @@ def test_a_chi2_drop_the_effect_own_uncertainty_does_not_carry_is_not_named():
     assert select_effects(Clock(None), SelectionSettings()).verdict == ["time_scale"]
 
 
+def test_an_effect_with_no_held_out_prediction_is_not_named():
+    """A held-out RMS that is not a number (a held-out part with no frame to predict) fails the
+    held-out test, even where the rules let a prediction a little worse than the baseline's
+    pass (video's -5 %): before, its gain read 0 and passed there."""
+    from torchfit.discover import ModelFit
+
+    class NoHeldOut:
+        noise_var = 1.0
+        candidates = ("com_offset",)
+
+        def fit(self, effects, warm):
+            rss = 300.0 if not effects else 200.0
+            params = {"com_offset": {"x": {"value": 0.004, "std": 0.0004, "unit": "m"}}} if effects else {}
+            return ModelFit(tuple(effects), rss, 272, 16 + len(effects), params, (rss / 272) ** 0.5, math.nan)
+
+    selection = select_effects(NoHeldOut(), SelectionSettings(min_heldout_gain=-0.05))
+    assert selection.verdict == [] and "heldout" in selection.steps[0].scores["com_offset"]["fails"]
+    assert selection.steps[0].scores["com_offset"]["delta_bic"] > 10  # the chi2 drop alone would pass
+
+
 def test_wald_statistic_of_a_linear_model_is_its_chi2_drop():
     """For least squares linear in its parameters the Wald statistic of a block of them equals the
     chi-squared drop from fixing that block at its null values (here two of three columns)."""

@@ -205,6 +205,28 @@ def test_discover_reports_a_lens_by_its_shift_where_the_object_went():
     assert dv.lens_shift_lines(["time_scale"], lens) == [] and dv.lens_shift_lines(["lens_distortion"], None) == []
 
 
+def test_a_jump_test_that_takes_a_whole_held_out_part_stops_with_what_to_do(monkeypatch):
+    """When the jump test finds every frame of a held-out part to be a failed segmentation (a
+    clip whose end fails to segment), there is no prediction to judge an effect by: the fit
+    stops with an error that names the part, its frames and what to do, instead of judging a
+    held-out RMS of no frames."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
+    video = dv.VideoProblem(problem, backcast=True)
+    held = video.splits[1][1]  # the start
+    idx = np.flatnonzero(problem.used.cpu().numpy())
+
+    def every_held_frame(channels, *args):
+        return held[idx], {name: np.zeros(len(idx)) for name in channels}
+
+    monkeypatch.setattr(dv, "jump_outliers", every_held_frame)
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    first, last = np.flatnonzero(held)[[0, -1]]
+    with pytest.raises(ValueError, match=f"held-out start, frames {first}-{last} .*params.jump_sigmas=null"):
+        video._set_noise(model)
+
+
 def test_prediction_spread_is_the_fits_covariance_carried_to_each_held_frames_channels():
     """``VideoProblem.prediction_spread`` (the Jacobian of the held frames' whitened vector,
     un-whitened) equals ``diag(J C Jᵀ)`` with ``J`` the raw channels' Jacobian by central

@@ -342,7 +342,9 @@ def select_effects(problem: SelectionProblem, settings: SelectionSettings = Sele
             d_chi = chi_base - chi
             d_k = max(fit.n_free - base.n_free, 1)
             p_value = float(stats.chi2.sf(max(d_chi, 0.0), d_k))
-            gain = 1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0 else 0.0
+            # NaN where either held-out RMS is not a number (no frame to predict): the test then fails
+            gain = (1.0 - fit.heldout_rms / base.heldout_rms if base.heldout_rms > 0
+                    else 0.0 if base.heldout_rms == 0 else math.nan)
             outside = _outside_bounds(name, fit.params.get(name, {}))
             spread = _spread(base, fit, bic_base - bic, settings.evidence_blocks)
             deviance = (None if settings.heldout_margin is None or fit.heldout_deviance is None

@@ -1590,6 +1590,14 @@ class VideoProblem:
                 self.jump_scores[name] = np.full(len(used), np.nan)
                 self.jump_scores[name][idx] = score
         if outliers.any():
+            for (_, held), part in zip(self.splits, ("end", "start")):
+                if not (held & ~outliers).any():
+                    frames = np.flatnonzero(held)
+                    raise ValueError(
+                        f"the jump test (params.jump_sigmas) found every frame of the held-out {part}, "
+                        f"frames {frames[0]}-{frames[-1]} of the span, to be a failed segmentation: there is "
+                        f"nothing to judge a prediction on. Look at the clip's {part} (the contact sheet), cut "
+                        f"it off (data.start / data.stop), or turn the test off (params.jump_sigmas=null)")
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
             self.problem.used = self.problem.used & keep
