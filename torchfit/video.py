@@ -85,10 +85,10 @@ SHADING_FITS = ("constant", "linear")
 _CACHE_VERSION = 8
 # stabilise="auto": the frames are moved back when some pixel of some frame's background lies more
 # than this many pixels from the clip's (camera_motion; a frame's corners, where a turn moves most).
-# The 160 still concealed recordings read at most
-# 0.013 px; refilmed with a smooth shake of 1 px RMS per axis, three of five controls named an
-# effect unless the frames were moved back, and none when they were (experiments/discover/
-# HISTORY.md, *A camera that is not quite still*).
+# The 160 still concealed recordings move no pixel more than 0.021 px; refilmed with a smooth shake
+# of 1 px RMS per axis, three of five controls named an effect unless the frames were moved back,
+# and none when they were (experiments/discover/HISTORY.md, *A camera that is not quite still*,
+# *Taking out a turn about the line of sight*).
 STILL_PX = 0.25
 # camera_motion: pixels whose grey level lies this far from the aligned background are the object's
 # (or another mover's) and are left out of the registration, grown by MOTION_OBJECT_GROW_PX
@@ -493,9 +493,10 @@ def camera_motion_note(observation: Observation) -> str:
     shifts = np.linalg.norm(observation.camera_motion[:, :2], axis=1)
     turns = np.abs(observation.camera_motion[:, 2])
     frame = int(observation.frame_indices[int(np.argmax(moves))])
-    line = (f"The camera moved: a corner of frame {frame} lies {moves.max():.2f} px from the clip's "
-            f"(the centre's move RMS {float(np.sqrt((shifts ** 2).mean())):.2f} px, the turn about the "
-            f"line of sight RMS {float(np.sqrt((turns ** 2).mean())):.3f} deg over the frames)")
+    line = (f"The camera moved: the background of frame {frame} moved up to {moves.max():.2f} px against the "
+            f"clip's, at a corner (over the frames, the image centre's move RMS "
+            f"{float(np.sqrt((shifts ** 2).mean())):.2f} px and the turn about the line of sight RMS "
+            f"{float(np.sqrt((turns ** 2).mean())):.3f} deg)")
     if observation.stabilised:
         return line + "; the frames were moved back before they were segmented (data.segmentation.stabilise)."
     return line + ("; the frames were not moved back (data.segmentation.stabilise=false), and the model "
