@@ -460,13 +460,19 @@ def _motion_rows(matrices: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return np.column_stack([matrices[:, :2, 2] - turned[:, :2, 2], turns])
 
 
+def _corners(size: tuple[int, int]) -> np.ndarray:
+    """(4, 3) the corner pixels ``(x, y, 1)`` of an image of ``size`` ``(H, W)``, where a rigid map
+    moves a pixel most."""
+    height, width = size
+    return np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
+
+
 def _largest_move(motion: np.ndarray, size: tuple[int, int]) -> float:
     """The largest move (px) of any pixel of an image of ``size`` ``(H, W)`` under any row of
-    (T, 3) ``motion`` (0 for none): a rigid map moves the corners most."""
+    (T, 3) ``motion`` (0 for none), at a corner (:func:`_corners`)."""
     if len(motion) == 0:
         return 0.0
-    height, width = size
-    corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
+    corners = _corners(size)
     moved = np.einsum("tij,kj->tki", _motion_matrices(motion, size)[:, :2], corners)
     return float(np.linalg.norm(moved - corners[None, :, :2], axis=2).max())
 

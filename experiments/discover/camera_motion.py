@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from shake import shake_motion
-from torchfit.video import STILL_PX, _largest_move, _motion_matrices, _read_video, camera_motion
+from torchfit.video import STILL_PX, _corners, _largest_move, _motion_matrices, _read_video, camera_motion
 
 HERE = Path(__file__).resolve().parent
 
@@ -39,10 +39,8 @@ def measure(folder: Path) -> dict:
         truth = shake_motion(json.loads((folder / "shake.json").read_text()))
         found = motion - np.median(motion - truth, axis=0)
         error = found - truth
-        height, width = size
-        corners = np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
         apart = np.einsum("tij,kj->tki", (_motion_matrices(found, size) - _motion_matrices(truth, size))[:, :2],
-                          corners)
+                          _corners(size))
         row["shake_rms_px"] = float(np.sqrt((truth[:, :2] ** 2).sum(1).mean()))
         row["shake_turn_rms_deg"] = float(np.sqrt((truth[:, 2] ** 2).mean()))
         row["error_rms_px"] = float(np.sqrt((error[:, :2] ** 2).sum(1).mean()))

@@ -18,9 +18,9 @@ first order, to the object (HISTORY.md, *A camera that is not quite still*).
 ``DEG`` degrees RMS (made like the offsets, from its own seed): a camera that also turns about
 its line of sight. Folders ``NAME_shake<A>_roll<DEG>/``; ``shake.json`` holds the angles too.
 
-``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>]_undone/``: the refilmed video's frames moved
-back by the shake's own offsets and turns (``torchfit.video.stabilised``) as lossless PNGs, with the same files
-beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
+``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>]_undone/``: the refilmed video's frames
+moved back by the shake's own offsets and turns (``torchfit.video.stabilised``) as lossless PNGs,
+with the same files beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
 the frames back costs when the offsets are exact.
 """
 
