@@ -5,9 +5,11 @@
 For every recording in each ``SET`` (folders beside this file, e.g. ``recordings``
 ``recordings_fresh1``, or any path holding recording folders): the largest move of any pixel of
 its frames' backgrounds (a corner), the RMS shift of the image centre, in px, and the RMS turn
-about it, in degrees; and where the folder holds ``shake.json`` (``shake.py``) the RMS and
-largest error of the centre's shift, the RMS error of the turn and of the largest corner's move
-against the shake's own (all about their medians). The concealed recordings are filmed from a
+about it, in degrees. Where the folder holds ``shake.json`` (``shake.py``): how far from the
+shake's own map the found one puts a still frame's corners and centre (RMS over the frames of
+the worst corner, the largest, the centre's RMS; each point's error about its median over the
+frames), and for a shake of the picture (no ``--turn``) the RMS and largest error of the
+centre's shift and the RMS error of the turn (about their medians). The concealed recordings are filmed from a
 still camera: their largest move is what ``SegmentationSettings.stabilise="auto"`` must stay
 under (:data:`torchfit.video.STILL_PX`) to leave them as they were. Writes
 ``results/camera_motion.json`` (or ``--out``).
@@ -21,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shake import shake_motion
+from shake import shake_maps, shake_motion
 from torchfit.video import STILL_PX, _corners, _largest_move, _motion_matrices, _read_video, camera_motion
 
 HERE = Path(__file__).resolve().parent
@@ -36,17 +38,28 @@ def measure(folder: Path) -> dict:
     row = {"largest_px": _largest_move(motion, size), "rms_px": float(np.sqrt((shift ** 2).mean())),
            "turn_rms_deg": float(np.sqrt((motion[:, 2] ** 2).mean()))}
     if (folder / "shake.json").exists():
-        truth = shake_motion(json.loads((folder / "shake.json").read_text()))
-        found = motion - np.median(motion - truth, axis=0)
-        error = found - truth
-        apart = np.einsum("tij,kj->tki", (_motion_matrices(found, size) - _motion_matrices(truth, size))[:, :2],
-                          _corners(size))
-        row["shake_rms_px"] = float(np.sqrt((truth[:, :2] ** 2).sum(1).mean()))
-        row["shake_turn_rms_deg"] = float(np.sqrt((truth[:, 2] ** 2).mean()))
-        row["error_rms_px"] = float(np.sqrt((error[:, :2] ** 2).sum(1).mean()))
-        row["error_largest_px"] = float(np.linalg.norm(error[:, :2], axis=1).max())
-        row["turn_error_rms_deg"] = float(np.sqrt((error[:, 2] ** 2).mean()))
-        row["corner_error_rms_px"] = float(np.sqrt((np.linalg.norm(apart, axis=2).max(1) ** 2).mean()))
+        shake = json.loads((folder / "shake.json").read_text())
+        truth_maps = shake_maps(shake, size)
+        # where the image centre and the corners of a still frame lie in each frame, found and true,
+        # about their medians over the frames (a registration is relative to the clip's own frames)
+        points = np.vstack([_corners(size), [[(size[1] - 1) / 2, (size[0] - 1) / 2, 1.0]]])
+        found_at = np.einsum("tij,kj->tki", _motion_matrices(motion, size), points)
+        truth_at = np.einsum("tij,kj->tki", truth_maps, points)
+        apart = found_at[..., :2] / found_at[..., 2:] - truth_at[..., :2] / truth_at[..., 2:]
+        apart = np.linalg.norm(apart - np.median(apart, axis=0), axis=2)  # (T, 5)
+        row["shake_rms_px"] = float(np.sqrt((np.asarray(shake["offsets_px"]) ** 2).sum(1).mean()))
+        row["corner_error_rms_px"] = float(np.sqrt((apart[:, :4].max(1) ** 2).mean()))
+        row["corner_error_largest_px"] = float(apart[:, :4].max())
+        row["centre_error_rms_px"] = float(np.sqrt((apart[:, 4] ** 2).mean()))
+        if "maps" in shake:  # a turned camera: its pan and tilt
+            row["shake_pan_tilt_rms_deg"] = float(np.sqrt((np.asarray(shake["turn_deg"]) ** 2).mean()))
+        else:  # a shift and a turn of the picture: the rows themselves
+            truth = shake_motion(shake)
+            error = motion - np.median(motion - truth, axis=0) - truth
+            row["shake_turn_rms_deg"] = float(np.sqrt((truth[:, 2] ** 2).mean()))
+            row["error_rms_px"] = float(np.sqrt((error[:, :2] ** 2).sum(1).mean()))
+            row["error_largest_px"] = float(np.linalg.norm(error[:, :2], axis=1).max())
+            row["turn_error_rms_deg"] = float(np.sqrt((error[:, 2] ** 2).mean()))
     return row
 
 

@@ -18,6 +18,15 @@ first order, to the object (HISTORY.md, *A camera that is not quite still*).
 ``DEG`` degrees RMS (made like the offsets, from its own seed): a camera that also turns about
 its line of sight. Folders ``NAME_shake<A>_roll<DEG>/``; ``shake.json`` holds the angles too.
 
+``--turn DEG`` turns the camera itself about its own centre: a pan and a tilt of ``DEG`` degrees
+RMS each (and the ``--roll`` about its axis), made like the offsets, so each frame is the
+still one seen through the homography ``K R K^-1`` of the recording's own ``camera.json``
+(then moved by the offsets). A camera held in the hand turns this way; a shift and a turn of
+the picture (what ``torchfit.video.camera_motion`` measures) is its first-order part, exact at
+the principal point and off by ``angle * r^2 / f`` at a distance ``r`` from it. Folders
+``NAME_shake<A>[_roll<DEG>]_turn<DEG>/``; ``shake.json`` holds each frame's map
+(``maps``, 3 x 3, a still pixel to the frame's).
+
 ``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>]_undone/``: the refilmed video's frames
 moved back by the shake's own offsets and turns (``torchfit.video.stabilised``) as lossless PNGs,
 with the same files beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
@@ -77,6 +86,34 @@ def shake_motion(shake: dict) -> np.ndarray:
     return np.column_stack([offsets, turns])
 
 
+def turn_maps(offsets: np.ndarray, pan_tilt: np.ndarray, roll: np.ndarray, camera: dict) -> np.ndarray:
+    """(T, 3, 3) maps of a still pixel to the frame's, for a camera turned by (T, 2) ``pan_tilt``
+    and (T,) ``roll`` (degrees, about its y, x and optical axes) with the intrinsics of
+    ``camera`` (``camera.json``'s content), then moved by (T, 2) ``offsets`` (px): ``K R K^-1``
+    with ``R = R_y(pan) R_x(tilt) R_z(roll)``."""
+    k = np.array([[camera["fx"], 0.0, camera["cx"]], [0.0, camera["fy"], camera["cy"]], [0.0, 0.0, 1.0]])
+    maps = []
+    for (dx, dy), (pan, tilt), spin in zip(offsets, np.radians(pan_tilt), np.radians(roll)):
+        c, s = np.cos(pan), np.sin(pan)
+        r_y = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        c, s = np.cos(tilt), np.sin(tilt)
+        r_x = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+        c, s = np.cos(spin), np.sin(spin)
+        r_z = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        h = np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1]]) @ k @ r_y @ r_x @ r_z @ np.linalg.inv(k)
+        maps.append(h / h[2, 2])
+    return np.stack(maps)
+
+
+def shake_maps(shake: dict, size: tuple[int, int]) -> np.ndarray:
+    """(T, 3, 3) each frame's map of a still pixel to the frame's, of a ``shake.json``'s content
+    for frames of ``size`` ``(H, W)``: its ``maps`` where the camera was turned (``--turn``),
+    else its shift and turn (:func:`shake_motion`)."""
+    from torchfit.video import _motion_matrices
+
+    return np.asarray(shake["maps"], float) if "maps" in shake else _motion_matrices(shake_motion(shake), size)
+
+
 def store_like(path: Path, spec: dict, frames: np.ndarray) -> None:
     """(T, H, W, 3) uint8 BGR ``frames`` stored as the video ``path`` the way the recording whose
     truth.json ``spec`` is was stored: its codec, crf, stated frame rate and transfer tag
@@ -91,9 +128,10 @@ def store_like(path: Path, spec: dict, frames: np.ndarray) -> None:
     writer.release()
 
 
-def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float = 0.0) -> Path:
+def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float = 0.0, turn: float = 0.0) -> Path:
     """The recording ``folder`` refilmed with a shake of ``amplitude`` px RMS (and a turn about the
-    line of sight of ``roll`` degrees RMS) into ``out``; returns the new folder."""
+    line of sight of ``roll`` degrees RMS; with ``turn``, the camera panned and tilted by that many
+    degrees RMS each, :func:`turn_maps`) into ``out``; returns the new folder."""
     from torchfit.video import _read_video
 
     if not (amplitude >= 0):
@@ -103,14 +141,25 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float =
     frames, _ = _read_video(folder / "video.mp4", 0, None)  # BGR
     offsets = shake_path(len(frames), amplitude, seed + zlib.crc32(folder.name.encode()))
     angles = shake_path(len(frames), roll, seed + 1 + zlib.crc32(folder.name.encode()))[:, 0] if roll else None
-    target = out / (f"{folder.name}_shake{amplitude:g}" + (f"_roll{roll:g}" if roll else ""))
+    target = out / (f"{folder.name}_shake{amplitude:g}" + (f"_roll{roll:g}" if roll else "")
+                    + (f"_turn{turn:g}" if turn else ""))
     target.mkdir(parents=True, exist_ok=True)
-    store_like(target / "video.mp4", spec, shaken(frames, offsets, angles))
+    record = {"source": str(folder), "amplitude_px": amplitude, "smooth_frames": SMOOTH_FRAMES,
+              "offsets_px": offsets.tolist(), "roll_deg": None if angles is None else angles.tolist()}
+    if turn:
+        pan_tilt = shake_path(len(frames), turn, seed + 2 + zlib.crc32(folder.name.encode()))
+        maps = turn_maps(offsets, pan_tilt, np.zeros(len(frames)) if angles is None else angles,
+                         json.loads((folder / "camera.json").read_text()))
+        height, width = frames.shape[1:3]
+        moved = np.stack([cv2.warpPerspective(frame, h, (width, height), flags=cv2.INTER_LANCZOS4,
+                                              borderMode=cv2.BORDER_REPLICATE) for frame, h in zip(frames, maps)])
+        record |= {"turn_deg": pan_tilt.tolist(), "maps": maps.tolist()}
+    else:
+        moved = shaken(frames, offsets, angles)
+    store_like(target / "video.mp4", spec, moved)
     for name in ("mesh.obj", "camera.json", "truth.json"):
         shutil.copy(folder / name, target / name)
-    (target / "shake.json").write_text(json.dumps({"source": str(folder), "amplitude_px": amplitude,
-                                                   "smooth_frames": SMOOTH_FRAMES, "offsets_px": offsets.tolist(),
-                                                   "roll_deg": None if angles is None else angles.tolist()}))
+    (target / "shake.json").write_text(json.dumps(record))
     return target
 
 
@@ -140,12 +189,16 @@ def main(argv=None) -> None:
     ap.add_argument("--undo", action="store_true", help="also the frames moved back by the shake's own motion (PNGs)")
     ap.add_argument("--roll", type=float, default=0.0, metavar="DEG",
                     help="also turn each frame about the image centre, DEG degrees RMS")
+    ap.add_argument("--turn", type=float, default=0.0, metavar="DEG",
+                    help="also pan and tilt the camera, DEG degrees RMS each (a homography)")
     args = ap.parse_args(argv)
+    if args.undo and args.turn:
+        raise SystemExit("--undo moves the frames back by a shift and a turn; it does not take --turn")
     folder = HERE / args.set / args.name
     if not (folder / "truth.json").exists():
         raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
     for amplitude in args.amplitudes:
-        target = make(folder, amplitude, args.out, args.seed, args.roll)
+        target = make(folder, amplitude, args.out, args.seed, args.roll, args.turn)
         print(target, flush=True)
         if args.undo:
             print(undo(target), flush=True)
