@@ -1122,3 +1122,27 @@ def test_compare_runs_reports_verdicts_and_the_largest_score_change(tmp_path):
     assert drag["largest_delta_bic_change"] == pytest.approx(0.5) and drag["where"] == ["time_scale", 1]
     assert compare.main([str(a), str(b), "--out", str(tmp_path / "c.json")]) == 0
     assert json.loads((tmp_path / "c.json").read_text())["largest"][0]["run"] == "concealed_x/clock"
+
+
+def test_shake_maps_agree_with_camera_motion_and_a_pan_moves_the_principal_point_by_f_tan():
+    """``shake.py``'s maps of a still pixel to the frame's: a shift and turn of the picture is
+    ``camera_motion``'s own map (``_motion_matrices``); a camera rolled by ``r`` turns the picture
+    by ``-r`` in that convention; a pan by ``a`` moves the principal point by ``f tan a`` across and
+    a corner by more, ``f tan(atan(x / f) + a) - x``, to first order what a shift leaves out."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    shake = _load("shake", CONCEALED.parent / "shake.py")
+    from torchfit.video import _motion_matrices
+
+    size, camera = (480, 640), {"fx": 659.0, "fy": 659.0, "cx": 319.5, "cy": 239.5}
+    rows = np.array([[1.5, -0.5, 0.3], [0.0, 2.0, -0.7]])
+    record = {"offsets_px": rows[:, :2].tolist(), "roll_deg": rows[:, 2].tolist()}
+    np.testing.assert_allclose(shake.shake_maps(record, size), _motion_matrices(rows, size), atol=1e-12)
+    rolled = shake.turn_maps(np.zeros((1, 2)), np.zeros((1, 2)), np.array([0.7]), camera)
+    np.testing.assert_allclose(rolled, _motion_matrices(np.array([[0.0, 0.0, -0.7]]), size), atol=1e-9)
+    pan = np.radians(0.2)
+    panned = shake.turn_maps(np.zeros((1, 2)), np.array([[0.2, 0.0]]), np.zeros(1), camera)[0]
+    for x in (0.0, 320.0):
+        point = panned @ np.array([319.5 + x, 239.5, 1.0])
+        assert point[0] / point[2] - 319.5 - x == pytest.approx(659.0 * np.tan(np.arctan(x / 659.0) + pan) - x)
+        assert point[1] / point[2] == pytest.approx(239.5)
+    assert shake.shake_maps(record | {"maps": panned[None].tolist()}, size)[0] == pytest.approx(panned)

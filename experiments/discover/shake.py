@@ -88,9 +88,11 @@ def shake_motion(shake: dict) -> np.ndarray:
 
 def turn_maps(offsets: np.ndarray, pan_tilt: np.ndarray, roll: np.ndarray, camera: dict) -> np.ndarray:
     """(T, 3, 3) maps of a still pixel to the frame's, for a camera turned by (T, 2) ``pan_tilt``
-    and (T,) ``roll`` (degrees, about its y, x and optical axes) with the intrinsics of
-    ``camera`` (``camera.json``'s content), then moved by (T, 2) ``offsets`` (px): ``K R K^-1``
-    with ``R = R_y(pan) R_x(tilt) R_z(roll)``."""
+    and (T,) ``roll`` (degrees, about its y, x and optical axes, each by the right-hand rule with
+    x right, y down, z into the scene) with the intrinsics of ``camera`` (``camera.json``'s
+    content), then moved by (T, 2) ``offsets`` (px): ``K R K^-1`` with
+    ``R = R_y(pan) R_x(tilt) R_z(roll)``. The roll turns the picture the other way from
+    :func:`shaken`'s angle (clockwise on the screen for a positive one)."""
     k = np.array([[camera["fx"], 0.0, camera["cx"]], [0.0, camera["fy"], camera["cy"]], [0.0, 0.0, 1.0]])
     maps = []
     for (dx, dy), (pan, tilt), spin in zip(offsets, np.radians(pan_tilt), np.radians(roll)):
