@@ -597,8 +597,11 @@ def camera_motion(frames: np.ndarray, passes: int = 2) -> np.ndarray:
     about it in degrees (counter-clockwise on the screen), so that a still camera's pixel ``p``
     lies at ``R(turn)(p - c) + c + (dx, dy)`` in the frame (:func:`_motion_matrices`), taken about
     the frames' median (a still camera reads zeros). What a small turn of a camera held in the
-    hand does to a far background: about an axis across the line of sight it shifts the picture,
-    about the line of sight it turns it. A move towards the scene, or one that shows parallax, is
+    hand does to a far background: about the line of sight it turns the picture; about an axis
+    across it, it shifts the picture to first order, and the rest (the homography ``K R K^-1``
+    stretches the picture's edges) is not measured: a pan or tilt of 0.2 deg RMS leaves a still
+    frame's corners about 1 px off and its centre 0.2 px (experiments/discover/HISTORY.md, *A
+    camera that turns about any axis*). A move towards the scene, or one that shows parallax, is
     not measured.
 
     Each pass registers every frame's grey levels, moved back by the motion so far
