@@ -467,14 +467,17 @@ def _corners(size: tuple[int, int]) -> np.ndarray:
     return np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
 
 
-def _largest_move(motion: np.ndarray, size: tuple[int, int]) -> float:
-    """The largest move (px) of any pixel of an image of ``size`` ``(H, W)`` under any row of
-    (T, 3) ``motion`` (0 for none), at a corner (:func:`_corners`)."""
-    if len(motion) == 0:
-        return 0.0
+def _frame_moves(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T,) the largest move (px) of any pixel of an image of ``size`` ``(H, W)`` under each row
+    of (T, 3) ``motion``, at a corner (:func:`_corners`)."""
     corners = _corners(size)
     moved = np.einsum("tij,kj->tki", _motion_matrices(motion, size)[:, :2], corners)
-    return float(np.linalg.norm(moved - corners[None, :, :2], axis=2).max())
+    return np.linalg.norm(moved - corners[None, :, :2], axis=2).max(axis=1, initial=0.0)
+
+
+def _largest_move(motion: np.ndarray, size: tuple[int, int]) -> float:
+    """The largest of :func:`_frame_moves` (px; 0 for no frame)."""
+    return float(_frame_moves(motion, size).max(initial=0.0))
 
 
 def camera_motion_fields(observation: Observation) -> dict:
@@ -494,8 +497,7 @@ def camera_motion_note(observation: Observation) -> str:
     no pixel of any frame moved more than :data:`STILL_PX`)."""
     if observation.camera_moved_px <= STILL_PX:
         return ""
-    size = observation.masks.shape[1:3]
-    moves = np.array([_largest_move(row[None], size) for row in observation.camera_motion])
+    moves = _frame_moves(observation.camera_motion, observation.masks.shape[1:3])
     shifts = np.linalg.norm(observation.camera_motion[:, :2], axis=1)
     turns = np.abs(observation.camera_motion[:, 2])
     frame = int(observation.frame_indices[int(np.argmax(moves))])
@@ -1388,7 +1390,7 @@ def load_observation(
         cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings, camera)}.npz"
         cached = _load_cache(cache_file)
 
-    background, motion, moved_back = None, None, False
+    background, motion, moved_back, unseen = None, None, False, None
     if kind == "masks":
         masks = _read_mask_folder(paths, start, stop)
         second_frac = np.array([
@@ -1412,7 +1414,8 @@ def load_observation(
         moved_back = settings.stabilise is True or (settings.stabilise == "auto"
                                                     and _largest_move(motion, frames.shape[1:3]) > STILL_PX)
         if moved_back:
-            frames = _background_where_unseen(stabilised(frames, motion), unseen_pixels(motion, frames.shape[1:3]))
+            unseen = unseen_pixels(motion, frames.shape[1:3])
+            frames = _background_where_unseen(stabilised(frames, motion), unseen)
         segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
@@ -1432,9 +1435,8 @@ def load_observation(
         masks = _undistort(masks, camera)
     if kind == "masks":
         cover_moments = raw_moments(masks)
-    unseen = None
     if moved_back:  # a mask that reaches a border the frame did not see may be cut there
-        unseen = unseen_pixels(motion, masks.shape[1:3])
+        unseen = unseen_pixels(motion, masks.shape[1:3]) if unseen is None else unseen  # None: from the cache
         if distorted:
             unseen = _undistort(unseen, camera)
     reasons = _flag(masks, second_frac, settings, unseen)

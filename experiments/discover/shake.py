@@ -67,15 +67,13 @@ def shaken(frames: np.ndarray, offsets: np.ndarray, angles: np.ndarray | None = 
     """(T, H, W, 3) uint8 ``frames`` each turned by its angle (degrees, about the image centre;
     none when ``angles`` is None) and moved by its (2,) offset (x, y) in px, Lanczos, the border
     replicated."""
-    out = np.empty_like(frames)
+    from torchfit.video import _motion_matrices
+
     height, width = frames.shape[1:3]
     angles = np.zeros(len(frames)) if angles is None else angles
-    for t, (frame, (dx, dy), angle) in enumerate(zip(frames, offsets, angles)):
-        warp = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), float(angle), 1.0)
-        warp[:, 2] += (dx, dy)
-        out[t] = cv2.warpAffine(frame, warp.astype(np.float32), (width, height),
-                                flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
-    return out
+    maps = _motion_matrices(np.column_stack([offsets, angles]), (height, width))
+    return np.stack([cv2.warpAffine(frame, warp[:2].astype(np.float32), (width, height), flags=cv2.INTER_LANCZOS4,
+                                    borderMode=cv2.BORDER_REPLICATE) for frame, warp in zip(frames, maps)])
 
 
 def shake_motion(shake: dict) -> np.ndarray:
