@@ -1345,6 +1345,7 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     motion = np.array(content["camera_motion_px"])
     assert motion.shape[1] == 2 and np.abs(motion).max() < 0.05 and content["stabilised"] is False
     assert np.abs(content["camera_turn_deg"]).max() < 0.01
+    assert np.array(content["camera_maps"]).shape == (len(motion), 3, 3)
     assert not any(line.startswith("The camera moved") for line in content["report"])
 
 

@@ -60,6 +60,8 @@ def test_fit_small_recording_end_to_end(tmp_path):
     # filmed from a still camera: each frame's background offset measured, none moved back
     assert np.array(result["camera_motion_px"]).shape == (12, 2) and result["stabilised"] is False
     assert len(result["camera_turn_deg"]) == 12
+    maps = np.array(result["camera_maps"])  # each frame's homography, near the identity
+    assert maps.shape == (12, 3, 3) and np.abs(maps - np.eye(3)).max() < 0.01
     for name in ("iou.png", "loss.png", "overlay.mp4", "contact_sheet.png"):
         assert (tmp_path / name).stat().st_size > 0
     # the quick search on the 320x240 tshape_small clip: orientation found, silhouettes overlap well

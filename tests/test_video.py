@@ -407,6 +407,11 @@ def test_cache(tmp_path):
     assert len(list(tmp_path.glob("*.npz"))) == 1
     other = load_observation(video, cache_dir=tmp_path, settings=SegmentationSettings(noise_sigmas=5))
     assert not other.from_cache  # the settings are part of the key
+    camera = Camera.from_file(DATA / "tshape_small" / "camera.json")
+    assert not load_observation(video, cache_dir=tmp_path, camera=camera).from_cache  # K registers the motion
+    moved = Camera(camera.fx * 1.01, camera.fy * 1.01, camera.cx, camera.cy, camera.width, camera.height)
+    assert not load_observation(video, cache_dir=tmp_path, camera=moved).from_cache
+    assert load_observation(video, cache_dir=tmp_path, camera=camera).from_cache
 
 
 # --- folders -------------------------------------------------------------------------
@@ -791,26 +796,27 @@ def test_local_linear_shading_reads_a_shaded_limb(fit, area_excess, spread_px2):
 # --- a camera held in the hand -------------------------------------------------------
 
 
-def _shaken_scene(motion: np.ndarray, height: int = 120, width: int = 160, seed: int = 3) -> np.ndarray:
+def _shaken_scene(maps: np.ndarray, height: int = 120, width: int = 160, seed: int = 3) -> np.ndarray:
     """(T, H, W, 3) uint8 BGR frames of a smooth random texture with a dark disc (radius 8 px)
-    crossing it from left to right, each whole frame then moved by its row of ``motion``: (T, 2)
-    shifts (x, y) or (T, 3) ``(dx, dy, turn)``, the turn in degrees about the image centre as
-    ``cv2.getRotationMatrix2D`` (Lanczos): what a still camera sees, shaken. Zeros give the
-    still clip."""
+    crossing it from left to right, each whole frame then moved by its map of (T, 3, 3) ``maps``
+    (a still pixel to the frame's; Lanczos) from a scene 16 px wider on every side, so a moved
+    frame's border shows more of the scene: what a still camera sees, shaken. Identities give
+    the still clip."""
+    margin = 16
     rng = np.random.default_rng(seed)
-    texture = cv2.GaussianBlur(rng.uniform(0, 255, (height, width, 3)).astype(np.float32), (0, 0), 2.0)
+    big = (height + 2 * margin, width + 2 * margin)
+    texture = cv2.GaussianBlur(rng.uniform(0, 255, big + (3,)).astype(np.float32), (0, 0), 2.0)
     texture = 128 + 2.5 * (texture - texture.mean())
-    count, samples = len(motion), 4
-    v, u = (np.mgrid[0:height * samples, 0:width * samples] + 0.5) / samples - 0.5
+    count, samples = len(maps), 4
+    v, u = (np.mgrid[0:big[0] * samples, 0:big[1] * samples] + 0.5) / samples - 0.5 - margin
+    into_scene = np.array([[1.0, 0.0, -margin], [0.0, 1.0, -margin], [0.0, 0.0, 1.0]])
     frames = []
-    for t, row in enumerate(motion):
+    for t, warp in enumerate(maps):
         cx = 30.0 + 100.0 * t / max(count - 1, 1)
-        cover = ((u - cx) ** 2 + (v - 60.0) ** 2 <= 8.0 ** 2).reshape(height, samples, width, samples).mean((1, 3))
+        cover = ((u - cx) ** 2 + (v - 60.0) ** 2 <= 8.0 ** 2).reshape(big[0], samples, big[1], samples).mean((1, 3))
         frame = texture * (1 - cover[..., None]) + np.array([40.0, 60.0, 200.0]) * cover[..., None]
-        warp = cv2.getRotationMatrix2D(((width - 1) / 2, (height - 1) / 2), float(row[2]) if len(row) > 2 else 0.0, 1.0)
-        warp[:, 2] += row[:2]
-        frame = cv2.warpAffine(frame.astype(np.float32), warp.astype(np.float32), (width, height),
-                               flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
+        frame = cv2.warpPerspective(frame.astype(np.float32), warp @ into_scene, (width, height),
+                                    flags=cv2.INTER_LANCZOS4, borderMode=cv2.BORDER_REPLICATE)
         frames.append(np.clip(np.rint(frame), 0, 255).astype(np.uint8))
     return np.stack(frames)
 
@@ -823,20 +829,92 @@ def _shake(count: int = 20, amplitude: float = 1.5, seed: int = 1, turn: float =
     return motion - np.median(motion, 0)
 
 
+def _rigid(rows: np.ndarray, size: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """(T, 3, 3) the maps of (T, 3) rows ``(dx, dy, turn)`` (``video._motion_matrices``)."""
+    from torchfit.video import _motion_matrices
+
+    return _motion_matrices(rows, size)
+
+
+def _turned_camera(degrees: float, count: int = 20, seed: int = 4, focal: float = 150.0,
+                   size: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """(count, 3, 3) the maps ``K R K^-1`` of a camera (focal length ``focal`` px, principal point
+    at the centre of an image of ``size``) panned, tilted and rolled by a smooth random
+    ``degrees`` RMS each (:func:`_shake`'s path): what a far background does when the camera
+    held in the hand turns about any axis."""
+    height, width = size
+    k = np.array([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
+    angles = np.radians(_shake(count, degrees, seed, degrees))
+    maps = []
+    for pan, tilt, roll in angles:
+        rotation = cv2.Rodrigues(np.array([tilt, pan, roll]))[0]
+        h = k @ rotation @ np.linalg.inv(k)
+        maps.append(h / h[2, 2])
+    return np.stack(maps)
+
+
+def _map_error(found: np.ndarray, truth: np.ndarray, size: tuple[int, int] = (120, 160)) -> np.ndarray:
+    """(T, 5) how far (px) (T, 3, 3) maps ``found`` put a still frame's four corners and its centre
+    from where ``truth`` puts them, each about its median over the frames."""
+    from torchfit.video import _corners, _mapped
+
+    points = np.vstack([_corners(size), [[(size[1] - 1) / 2, (size[0] - 1) / 2, 1.0]]])
+    apart = _mapped(found, points) - _mapped(truth, points)
+    return np.linalg.norm(apart - np.median(apart, axis=0), axis=2)
+
+
 def test_motion_rows_and_matrices_are_inverse_and_a_turn_moves_the_corners_most():
     """``_motion_rows`` reads back what ``_motion_matrices`` made; a pure turn by ``a`` about the
     centre moves a corner, ``r`` from it, by ``2 r sin(a / 2)`` and the centre not at all; a
-    shift moves every pixel by its length."""
-    from torchfit.video import _largest_move, _motion_matrices, _motion_rows
+    shift moves every pixel by its length. Of a homography, ``_motion_rows`` gives where the
+    centre goes and the turn of the map's Jacobian there (against central differences)."""
+    from torchfit.video import _largest_move, _mapped, _motion_matrices, _motion_rows
 
     size = (120, 160)
     motion = np.array([[0.3, -1.2, 0.7], [-2.0, 0.5, -1.5], [0.0, 0.0, 0.0]])
     np.testing.assert_allclose(_motion_rows(_motion_matrices(motion, size), size), motion, atol=1e-12)
     radius = np.hypot(159 / 2, 119 / 2)
-    assert _largest_move(np.array([[0.0, 0.0, 0.5]]), size) == pytest.approx(2 * radius * np.sin(np.radians(0.25)))
-    assert _largest_move(np.array([[3.0, 4.0, 0.0]]), size) == pytest.approx(5.0)
+    assert _largest_move(_rigid(np.array([[0.0, 0.0, 0.5]])), size) == pytest.approx(
+        2 * radius * np.sin(np.radians(0.25)))
+    assert _largest_move(_rigid(np.array([[3.0, 4.0, 0.0]])), size) == pytest.approx(5.0)
     centre = _motion_matrices(np.array([[0.0, 0.0, 2.0]]), size)[0] @ np.array([159 / 2, 119 / 2, 1.0])
     np.testing.assert_allclose(centre[:2], [159 / 2, 119 / 2], atol=1e-12)
+    maps = _turned_camera(2.0, count=3)
+    rows = _motion_rows(maps, size)
+    c, h = np.array([159 / 2, 119 / 2, 1.0]), 1e-4
+    np.testing.assert_allclose(rows[:, :2], _mapped(maps, c[None])[:, 0] - c[:2], atol=1e-12)
+    dx = (_mapped(maps, (c + [h, 0, 0])[None]) - _mapped(maps, (c - [h, 0, 0])[None]))[:, 0] / (2 * h)
+    dy = (_mapped(maps, (c + [0, h, 0])[None]) - _mapped(maps, (c - [0, h, 0])[None]))[:, 0] / (2 * h)
+    turn = np.degrees(np.arctan2(dy[:, 0] - dx[:, 1], dx[:, 0] + dy[:, 1]))
+    np.testing.assert_allclose(rows[:, 2], turn, atol=1e-7)
+    assert np.abs(rows[:, 2]).max() > 0.5  # the camera's roll turns the picture
+
+
+def test_turn_map_is_the_turned_cameras_homography_and_its_slopes_match_finite_differences():
+    """``_turn_map`` of a pan, a tilt or a roll alone is ``shake.py``'s ``K R K^-1`` for it, a
+    shift moves the picture after the turn, and the points' slopes (``_point_slopes``, through
+    ``_turn_map_derivatives``) match central differences of the mapped points in float64."""
+    from torchfit.video import _mapped, _point_slopes, _turn_map, _turn_map_derivatives
+
+    k = np.array([[659.0, 0.0, 319.5], [0.0, 655.0, 239.5], [0.0, 0.0, 1.0]])
+    for axis in range(3):
+        rotation = np.zeros(3)
+        rotation[axis] = np.radians(0.7)
+        expected = k @ cv2.Rodrigues(rotation)[0] @ np.linalg.inv(k)
+        np.testing.assert_allclose(_turn_map(np.r_[rotation, 0.0, 0.0], k), expected / expected[2, 2], atol=1e-12)
+    pan = np.array([0.0, np.radians(0.7), 0.0])
+    shifted = np.array([[1, 0, 2.5], [0, 1, -1.0], [0, 0, 1]]) @ _turn_map(np.r_[pan, 0.0, 0.0], k)
+    np.testing.assert_allclose(_turn_map(np.r_[pan, 2.5, -1.0], k), shifted / shifted[2, 2], atol=1e-12)
+    params = np.array([0.004, -0.006, 0.01, 1.5, -2.0])
+    points = np.array([[0.0, 0.0, 1.0], [639.0, 0.0, 1.0], [300.0, 200.0, 1.0], [639.0, 479.0, 1.0]])
+    slopes = _point_slopes(points, _turn_map(params, k), _turn_map_derivatives(params, k))
+    for i, step in enumerate([1e-6, 1e-6, 1e-6, 1e-4, 1e-4]):
+        ahead, back = params.copy(), params.copy()
+        ahead[i] += step
+        back[i] -= step
+        numeric = (_mapped(_turn_map(ahead, k)[None], points) - _mapped(_turn_map(back, k)[None], points))[0] / (2 * step)
+        np.testing.assert_allclose(slopes[:, :, i], numeric, rtol=1e-5, atol=1e-6)
+    assert np.abs(slopes[:, :, 1]).max() > 600  # a pan moves a pixel about f per radian
 
 
 def test_unseen_border_is_marked_and_filled_with_the_background():
@@ -846,7 +924,7 @@ def test_unseen_border_is_marked_and_filled_with_the_background():
     from torchfit.video import LANCZOS_REACH_PX, _background_where_unseen, unseen_pixels
 
     motion = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    unseen = unseen_pixels(motion, (20, 30))
+    unseen = unseen_pixels(_rigid(motion, (20, 30)), (20, 30))
     assert not unseen[0].any() and not unseen[2].any()
     np.testing.assert_array_equal(np.flatnonzero(unseen[1].any(0)), np.arange(30 - 3 - LANCZOS_REACH_PX, 30))
     assert unseen[1].all(0)[-1]
@@ -858,22 +936,34 @@ def test_unseen_border_is_marked_and_filled_with_the_background():
 
 
 def test_camera_motion_reads_a_known_shake():
-    """``camera_motion`` reads a smooth shake of 1.5 px RMS per axis (up to 3.4 px) to a few
-    hundredths of a pixel and no turn, with the moving disc left out; a turn of 0.5 deg RMS
-    about the line of sight to a few thousandths of a degree; a still clip as still."""
-    from torchfit.video import camera_motion
+    """``camera_motion`` reads a smooth shake of 1.5 px RMS per axis (up to 3.4 px), with the
+    moving disc left out, to a few hundredths of a pixel at every corner and no turn (under a
+    hundredth of a degree); a turn of
+    0.5 deg RMS about the line of sight to about a hundredth of a degree; a camera turned 1 deg
+    RMS about every axis (whose shift and turn at the centre, all a rigid registration takes,
+    put the corners 1.6 px RMS off) to under a tenth of a pixel at the worst corner (worst
+    where the disc hides the background beside it) and the centre to a hundredth, given the
+    camera's intrinsics; a still clip as still."""
+    from torchfit.video import _motion_rows, camera_motion
 
-    shift = _shake()
-    found = camera_motion(_shaken_scene(shift[:, :2]))
-    error = np.linalg.norm(found[:, :2] - shift[:, :2], axis=1)
-    assert np.sqrt((error ** 2).mean()) < 0.03 and error.max() < 0.08
-    assert np.abs(found[:, 2]).max() < 0.005
+    size = (120, 160)
+    shift = _rigid(np.column_stack([_shake()[:, :2], np.zeros(20)]))
+    found = camera_motion(_shaken_scene(shift))
+    error = _map_error(found, shift)
+    assert np.sqrt((error.max(1) ** 2).mean()) < 0.04 and error.max() < 0.1
+    assert np.abs(_motion_rows(found, size)[:, 2]).max() < 0.01
     turned = _shake(amplitude=1.0, turn=0.5, seed=2)
-    found = camera_motion(_shaken_scene(turned))
-    error = np.linalg.norm(found[:, :2] - turned[:, :2], axis=1)
-    assert np.sqrt((error ** 2).mean()) < 0.03 and np.abs(found[:, 2] - turned[:, 2]).max() < 0.01
-    still = camera_motion(_shaken_scene(np.zeros((20, 2))))
-    assert np.abs(still[:, :2]).max() < 0.02 and np.abs(still[:, 2]).max() < 0.002
+    found = camera_motion(_shaken_scene(_rigid(turned)))
+    assert np.sqrt((_map_error(found, _rigid(turned)).max(1) ** 2).mean()) < 0.04
+    assert np.abs(_motion_rows(found, size)[:, 2] - turned[:, 2]).max() < 0.02
+    camera = _turned_camera(1.0)
+    rigid_part = _rigid(_motion_rows(camera, size))  # the first-order map the rigid registration took
+    assert np.sqrt((_map_error(rigid_part, camera).max(1) ** 2).mean()) > 1.0
+    found = camera_motion(_shaken_scene(camera), Camera(150.0, 150.0, 79.5, 59.5, 160, 120))
+    error = _map_error(found, camera)
+    assert np.sqrt((error.max(1) ** 2).mean()) < 0.1 and np.sqrt((error[:, 4] ** 2).mean()) < 0.02
+    still = camera_motion(_shaken_scene(np.tile(np.eye(3), (20, 1, 1))))
+    assert _map_error(still, np.tile(np.eye(3), (20, 1, 1))).max() < 0.03
 
 
 def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
@@ -890,7 +980,7 @@ def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
     for name, shift in (("still", np.zeros_like(offsets)), ("shaken", offsets)):
         folders[name] = tmp_path / name
         folders[name].mkdir()
-        for t, frame in enumerate(_shaken_scene(shift)):
+        for t, frame in enumerate(_shaken_scene(_rigid(shift))):
             cv2.imwrite(str(folders[name] / f"{t:03d}.png"), frame)
     still = load_observation(folders["still"], fps=60.0)
     moved = load_observation(folders["shaken"], fps=60.0)
@@ -898,7 +988,7 @@ def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
     assert not still.stabilised and still.camera_moved_px < STILL_PX and camera_motion_note(still) == ""
     assert moved.stabilised and not kept.stabilised
     np.testing.assert_allclose(moved.camera_motion, kept.camera_motion)
-    assert moved.camera_moved_px == pytest.approx(_largest_move(offsets, (120, 160)), abs=0.1)
+    assert moved.camera_moved_px == pytest.approx(_largest_move(_rigid(offsets), (120, 160)), abs=0.1)
 
     def centroids(observation):
         m = raw_moments(observation.masks.astype(np.float64))

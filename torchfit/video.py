@@ -35,8 +35,8 @@ generated recordings name none, mix in their stored values and are read as they 
 
 A camera held in the hand moves a little between frames, and the model projects the flight
 through one still camera. Before anything above, each frame's move against the clip's background
-is measured (:func:`camera_motion`, a whole-image shift and a turn about the image centre: what
-a small turn of the camera does); where some pixel of the background moves by more than
+is measured (:func:`camera_motion`: a turn of the camera about its three axes, seen through its
+intrinsics, and a shift of the picture); where some pixel of the background moves by more than
 :data:`STILL_PX`, the frames are moved back (``SegmentationSettings.stabilise``) and the
 observation keeps the motion.
 
@@ -82,7 +82,7 @@ BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 COVERAGE_BANDS = ("steps", "motion")
 SHADING_FITS = ("constant", "linear")
-_CACHE_VERSION = 8
+_CACHE_VERSION = 9
 # stabilise="auto": the frames are moved back when some pixel of some frame's background lies more
 # than this many pixels from the clip's (camera_motion; a frame's corners, where a turn moves most).
 # The 160 still concealed recordings move no pixel more than 0.021 px; refilmed with a smooth shake
@@ -97,6 +97,10 @@ MOTION_OBJECT_GROW_PX = 9
 # stabilised: Lanczos-4 draws on pixels this far away, so a moved-back frame's edge this deep is unseen
 LANCZOS_REACH_PX = 4
 MOTION_PYRAMID_MIN_PX = 48  # camera_motion's coarsest level keeps at least this many pixels a side
+MOTION_ITERATIONS = 50  # camera_motion's Gauss-Newton steps at most, per pyramid level
+MOTION_STEP_PX = 1e-3  # ... and a level stops when a step moves no corner more (that level's px)
+MOTION_MARGIN_PX = 2  # a level registers the pixels its start maps at least this far inside the frame
+MOTION_POINTS = 40_000  # ... of at most this many valid pixels, the steepest in the reference
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
 BAND_REFERENCE_STEPS, BAND_REFERENCE_PIXELS = 4, 640 * 480
 
@@ -174,8 +178,8 @@ class SegmentationSettings:
         area_jump: a frame whose area differs by more than this factor from the median area
             of its clean neighbours (three each side) is flagged.
         max_background_frames: frames (evenly spaced) that feed the background model.
-        stabilise: move each frame back by its background's move (:func:`camera_motion`, a shift
-            and a turn) before anything else, so a camera that shook in the hand is seen as a
+        stabilise: move each frame back by its background's move (:func:`camera_motion`, the
+            camera's turn and a shift) before anything else, so a camera that shook in the hand is seen as a
             still one: ``True``, ``False`` (the motion is still measured and reported) or
             ``"auto"`` (the default): when some pixel of some frame moved more than
             :data:`STILL_PX`.
@@ -269,9 +273,8 @@ class Observation:
             mask input; zeros where a frame has no object), undistorted with the masks (the
             coverage resampled through the camera's undistortion before its moments are taken);
             None for an observation made without them.
-        camera_motion: (T, 3) each frame's background move ``(dx, dy, turn)`` against the clip's:
-            the image centre's shift in pixels and the turn about it in degrees
-            (:func:`camera_motion`); None for mask input.
+        camera_motion: (T, 3, 3) each frame's background move against the clip's, a homography
+            from a still camera's pixel to the frame's (:func:`camera_motion`); None for mask input.
         stabilised: True when the frames were moved back by ``camera_motion`` before they were
             segmented (``SegmentationSettings.stabilise``): the masks are then in the still
             camera's place, and :func:`observed_frames` gives the frames as segmented.
@@ -440,10 +443,10 @@ def observed_frames(observation: Observation, positions=None) -> np.ndarray:
 
 
 def _motion_matrices(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(T, 3, 3) the maps ``p -> R(p - c) + c + d`` of (T, 3) ``motion`` rows ``(dx, dy, turn)``
-    (px, px, degrees counter-clockwise on the screen, as ``cv2.getRotationMatrix2D``) about the
-    centre ``c`` of an image of ``size`` ``(H, W)``: where a still camera's pixel ``p`` lies in
-    the frame."""
+    """(T, 3, 3) the rigid maps ``p -> R(p - c) + c + d`` of (T, 3) rows ``(dx, dy, turn)`` (px,
+    px, degrees counter-clockwise on the screen, as ``cv2.getRotationMatrix2D``) about the centre
+    ``c`` of an image of ``size`` ``(H, W)``: a shift and a turn of the picture as a map
+    (:func:`camera_motion`'s kind)."""
     height, width = size
     centre = ((width - 1) / 2, (height - 1) / 2)
     out = np.tile(np.eye(3), (len(motion), 1, 1))
@@ -453,42 +456,58 @@ def _motion_matrices(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _motion_rows(matrices: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(T, 3) rows ``(dx, dy, turn)`` of (T, 3, 3) rigid maps (:func:`_motion_matrices`' inverse)."""
-    turns = np.degrees(np.arctan2(matrices[:, 0, 1], matrices[:, 0, 0]))
-    turned = _motion_matrices(np.column_stack([np.zeros((len(turns), 2)), turns]), size)
-    return np.column_stack([matrices[:, :2, 2] - turned[:, :2, 2], turns])
+def _mapped(maps: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(T, K, 2) where each of the (T, 3, 3) homographies ``maps`` sends the (K, 3) points
+    ``(x, y, 1)``."""
+    moved = np.einsum("tij,kj->tki", maps, points)
+    return moved[..., :2] / moved[..., 2:]
+
+
+def _motion_rows(maps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T, 3) rows ``(dx, dy, turn)`` of (T, 3, 3) maps (homographies) at the centre ``c`` of an
+    image of ``size`` ``(H, W)``: where ``c`` moves, and the turn of the map's Jacobian there
+    (degrees, counter-clockwise on the screen): :func:`_motion_matrices`' inverse for a rigid map."""
+    height, width = size
+    centre = np.array([(width - 1) / 2, (height - 1) / 2, 1.0])
+    shift = _mapped(maps, centre[None])[:, 0] - centre[:2]
+    w = maps[:, 2] @ centre  # (T,) the homogeneous scale at the centre
+    jac = (maps[:, :2, :2] - np.einsum("ti,tj->tij", _mapped(maps, centre[None])[:, 0], maps[:, 2, :2])) / w[:, None, None]
+    turns = np.degrees(np.arctan2(jac[:, 0, 1] - jac[:, 1, 0], jac[:, 0, 0] + jac[:, 1, 1]))
+    return np.column_stack([shift, turns])
 
 
 def _corners(size: tuple[int, int]) -> np.ndarray:
-    """(4, 3) the corner pixels ``(x, y, 1)`` of an image of ``size`` ``(H, W)``, where a rigid map
-    moves a pixel most."""
+    """(4, 3) the corner pixels ``(x, y, 1)`` of an image of ``size`` ``(H, W)``, where a map of
+    :func:`camera_motion`'s kind moves a pixel most (a homography's largest move lies on the image's
+    boundary; for the small maps of a camera's shake, at a corner)."""
     height, width = size
     return np.array([[0, 0, 1], [width - 1, 0, 1], [0, height - 1, 1], [width - 1, height - 1, 1]], float)
 
 
-def _frame_moves(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(T,) the largest move (px) of any pixel of an image of ``size`` ``(H, W)`` under each row
-    of (T, 3) ``motion``, at a corner (:func:`_corners`)."""
+def _frame_moves(maps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T,) the largest move (px) of any pixel of an image of ``size`` ``(H, W)`` under each of
+    the (T, 3, 3) ``maps``, at a corner (:func:`_corners`)."""
     corners = _corners(size)
-    moved = np.einsum("tij,kj->tki", _motion_matrices(motion, size)[:, :2], corners)
-    return np.linalg.norm(moved - corners[None, :, :2], axis=2).max(axis=1, initial=0.0)
+    return np.linalg.norm(_mapped(maps, corners) - corners[None, :, :2], axis=2).max(axis=1, initial=0.0)
 
 
-def _largest_move(motion: np.ndarray, size: tuple[int, int]) -> float:
+def _largest_move(maps: np.ndarray, size: tuple[int, int]) -> float:
     """The largest of :func:`_frame_moves` (px; 0 for no frame)."""
-    return float(_frame_moves(motion, size).max(initial=0.0))
+    return float(_frame_moves(maps, size).max(initial=0.0))
 
 
 def camera_motion_fields(observation: Observation) -> dict:
     """What ``result.json`` and ``discover.json`` record of the camera's motion: each frame's
     background move against the clip's, the image centre's shift ``camera_motion_px`` (T lists
-    ``[x, y]``) and the turn about it ``camera_turn_deg`` (T values, counter-clockwise on the
-    screen), both None for mask input, and ``stabilised``, whether the frames were moved back by
-    it before the segmentation (:func:`camera_motion`)."""
-    motion = observation.camera_motion
-    return {"camera_motion_px": None if motion is None else np.asarray(motion)[:, :2].tolist(),
-            "camera_turn_deg": None if motion is None else np.asarray(motion)[:, 2].tolist(),
+    ``[x, y]``), the turn about it ``camera_turn_deg`` (T values, counter-clockwise on the
+    screen; :func:`_motion_rows`) and the whole map ``camera_maps`` (T 3 x 3 homographies, a still
+    camera's pixel to the frame's), all None for mask input, and ``stabilised``, whether the
+    frames were moved back by it before the segmentation (:func:`camera_motion`)."""
+    maps = observation.camera_motion
+    rows = None if maps is None else _motion_rows(maps, observation.masks.shape[1:3])
+    return {"camera_motion_px": None if rows is None else rows[:, :2].tolist(),
+            "camera_turn_deg": None if rows is None else rows[:, 2].tolist(),
+            "camera_maps": None if maps is None else np.asarray(maps).tolist(),
             "stabilised": bool(observation.stabilised)}
 
 
@@ -497,9 +516,10 @@ def camera_motion_note(observation: Observation) -> str:
     no pixel of any frame moved more than :data:`STILL_PX`)."""
     if observation.camera_moved_px <= STILL_PX:
         return ""
-    moves = _frame_moves(observation.camera_motion, observation.masks.shape[1:3])
-    shifts = np.linalg.norm(observation.camera_motion[:, :2], axis=1)
-    turns = np.abs(observation.camera_motion[:, 2])
+    size = observation.masks.shape[1:3]
+    moves = _frame_moves(observation.camera_motion, size)
+    rows = _motion_rows(observation.camera_motion, size)
+    shifts, turns = np.linalg.norm(rows[:, :2], axis=1), np.abs(rows[:, 2])
     frame = int(observation.frame_indices[int(np.argmax(moves))])
     line = (f"The camera moved: the background of frame {frame} moved up to {moves.max():.2f} px against the "
             f"clip's, at a corner (over the frames, the image centre's move RMS "
@@ -512,33 +532,32 @@ def camera_motion_note(observation: Observation) -> str:
 
 
 def _moved_back(image: np.ndarray, matrix: np.ndarray, flags: int) -> np.ndarray:
-    """``image`` resampled where the (3, 3) rigid map ``matrix`` sends each pixel (the frame a still
+    """``image`` resampled where the (3, 3) map ``matrix`` sends each pixel (the frame a still
     camera would have taken, when ``matrix`` is the frame's motion), the border replicated."""
     height, width = image.shape[:2]
-    return cv2.warpAffine(image, matrix[:2].astype(np.float32), (width, height),
-                          flags=flags | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.warpPerspective(image, matrix, (width, height), flags=flags | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE)
 
 
-def stabilised(frames: np.ndarray, motion: np.ndarray) -> np.ndarray:
-    """(T, H, W, C) ``frames`` each moved back by its row ``(dx, dy, turn)`` of (T, 3) ``motion``
+def stabilised(frames: np.ndarray, maps: np.ndarray) -> np.ndarray:
+    """(T, H, W, C) ``frames`` each moved back by its map of (T, 3, 3) ``maps``
     (:func:`camera_motion`), resampled with Lanczos: the frames a still camera would have taken."""
-    matrices = _motion_matrices(motion, frames.shape[1:3])
-    return np.stack([_moved_back(frame, matrix, cv2.INTER_LANCZOS4) for frame, matrix in zip(frames, matrices)])
+    return np.stack([_moved_back(frame, matrix, cv2.INTER_LANCZOS4) for frame, matrix in zip(frames, maps)])
 
 
-def unseen_pixels(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(T, H, W) bool: the pixels of each frame moved back by its row of (T, 3) ``motion``
+def unseen_pixels(maps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(T, H, W) bool: the pixels of each frame moved back by its map of (T, 3, 3) ``maps``
     (:func:`stabilised`) that the camera did not see in that frame, or that Lanczos drew from
     outside it (within :data:`LANCZOS_REACH_PX` of the frame's edge): the border filled by
     replication."""
     height, width = size
     ones = np.ones((height, width), np.uint8)
     grow = np.ones((2 * LANCZOS_REACH_PX + 1,) * 2, np.uint8)
-    seen = np.stack([cv2.erode(cv2.warpAffine(ones, m[:2].astype(np.float32), (width, height),
-                                              flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                              borderMode=cv2.BORDER_CONSTANT, borderValue=0),
+    seen = np.stack([cv2.erode(cv2.warpPerspective(ones, m, (width, height),
+                                                   flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0),
                                grow, borderType=cv2.BORDER_CONSTANT, borderValue=1)
-                     for m in _motion_matrices(motion, size)])
+                     for m in maps])
     return seen == 0
 
 
@@ -563,72 +582,167 @@ def _background_where_unseen(frames: np.ndarray, unseen: np.ndarray) -> np.ndarr
     return out
 
 
-def _ecc_motion(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
-    """(3, 3) the rigid map ``W`` (a turn and a shift, about the image origin) with
-    ``image(W(p)) ~ reference(p)`` for (H, W) float32 images, by ECC (``cv2.findTransformECC``,
-    ``MOTION_EUCLIDEAN``) over the ``valid`` pixels (all when None), coarse to fine on a Gaussian
-    pyramid (halved while the smaller side stays at least :data:`MOTION_PYRAMID_MIN_PX`), so a
-    move of several pixels is found from none. A level where ECC does not converge keeps the
-    coarser estimate."""
-    levels = [(reference, image, None if valid is None else valid.astype(np.uint8))]
+def _turn_map(params: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """(3, 3) the map ``T(d) K R K^-1`` (scaled to ``[2, 2] = 1``) of a camera with (3, 3)
+    intrinsics ``k`` turned by the rotation vector ``params[:3]`` (radians, about its x, y and
+    optical axes, x right, y down) and its picture then shifted by ``d = params[3:5]`` (px):
+    where a still camera's pixel lies in the frame (:func:`camera_motion`)."""
+    h = k @ cv2.Rodrigues(np.asarray(params[:3], float))[0] @ np.linalg.inv(k)
+    h[:2] += h[2] * np.asarray(params[3:5], float)[:, None]
+    return h / h[2, 2]
+
+
+def _turn_map_derivatives(params: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """(5, 3, 3) the derivatives of :func:`_turn_map` by each of its five parameters (central
+    differences: 1e-6 rad, 1e-4 px)."""
+    steps = np.array([1e-6, 1e-6, 1e-6, 1e-4, 1e-4])
+    out = np.empty((5, 3, 3))
+    for i, step in enumerate(steps):
+        ahead, back = np.array(params, float), np.array(params, float)
+        ahead[i] += step
+        back[i] -= step
+        out[i] = (_turn_map(ahead, k) - _turn_map(back, k)) / (2 * step)
+    return out
+
+
+def _point_slopes(points: np.ndarray, h: np.ndarray, slopes: np.ndarray) -> np.ndarray:
+    """(N, 2, K) how far the (N, 3) points ``(x, y, 1)`` move under the (3, 3) map ``h`` per unit
+    of each of K parameters whose (K, 3, 3) derivatives of ``h`` are ``slopes``:
+    ``d(x', y') = ((dh p)_xy - (x', y') (dh p)_z) / (h p)_z``."""
+    moved = points @ h.T  # (N, 3)
+    at = moved[:, :2] / moved[:, 2:]
+    d = (points @ slopes.transpose(2, 1, 0).reshape(3, -1)).reshape(len(points), 3, len(slopes))
+    return (d[:, :2] - at[:, :, None] * d[:, 2:]) / moved[:, 2, None, None]
+
+
+def _sampled(image: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(N,) float64: the (H, W) float32 ``image`` at the (N, 2) points ``at`` (x, y, px),
+    bilinear, the border replicated (``cv2.remap``, whose maps are at most 32767 a side, so
+    laid out in rows)."""
+    count, row = len(at), 1024
+    shape = (-(-count // row), row)
+    at_x, at_y = (np.resize(v.astype(np.float32), shape[0] * row).reshape(shape) for v in at.T)
+    return cv2.remap(image, at_x, at_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)[:count].astype(np.float64)
+
+
+def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None, k: np.ndarray,
+              params: np.ndarray, active: list[int], finest: int = 0) -> np.ndarray:
+    """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
+    fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
+    pixels of ``reference`` (all when None), by ECC's Gauss-Newton step (Evangelidis and
+    Psarakis, 2008: the correlation of the zero-mean images, so a change of exposure does not
+    move the map), coarse to fine on a Gaussian pyramid (halved while the smaller side stays at
+    least :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none;
+    ``finest`` levels at the bottom are left out (a coarser, cheaper estimate). A level stops
+    when a step moves no corner by more than :data:`MOTION_STEP_PX` of its pixels, after
+    :data:`MOTION_ITERATIONS` steps, or where the step is undefined (it then keeps its estimate)."""
+    levels = [(reference, image, np.ones(reference.shape, bool) if valid is None else valid)]
     while min(levels[-1][0].shape) >= 2 * MOTION_PYRAMID_MIN_PX:
         ref, img, mask = levels[-1]
         levels.append((cv2.pyrDown(ref), cv2.pyrDown(img),
-                       None if mask is None else cv2.resize(mask, (img.shape[1] // 2 + img.shape[1] % 2,
-                                                                   img.shape[0] // 2 + img.shape[0] % 2),
-                                                            interpolation=cv2.INTER_NEAREST)))
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
-    found = np.eye(3)
-    for level in range(len(levels) - 1, -1, -1):
+                       cv2.resize(mask.astype(np.uint8), (img.shape[1] // 2 + img.shape[1] % 2,
+                                                          img.shape[0] // 2 + img.shape[0] % 2),
+                                  interpolation=cv2.INTER_NEAREST) > 0))
+    params = np.array(params, float)
+    for level in range(len(levels) - 1, min(finest, len(levels) - 1) - 1, -1):
         ref, img, mask = levels[level]
-        scale = 2.0 ** level
-        warp = found[:2].astype(np.float32)
-        warp[:, 2] /= scale  # a pixel p of this level is the pixel scale * p of the finest
+        height, width = ref.shape
+        scale = np.diag([2.0 ** level, 2.0 ** level, 1.0])  # a pixel p of this level is the pixel scale p of the finest
+        down = np.linalg.inv(scale)
+        h = down @ _turn_map(params, k) @ scale
+        # the Jacobian, fixed for the level: the reference's gradient (what the frame's is, where
+        # they match) times how each parameter moves each point (_point_slopes), on the
+        # MOTION_POINTS steepest valid pixels that the start maps MOTION_MARGIN_PX inside the frame
+        grad_x = cv2.Sobel(ref, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
+        grad_y = cv2.Sobel(ref, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
+        steepness = np.where(mask, grad_x ** 2 + grad_y ** 2, -1.0).reshape(-1)
+        chosen = np.flatnonzero(steepness >= 0)
+        if len(chosen) > MOTION_POINTS:
+            chosen = np.argpartition(steepness, -MOTION_POINTS)[-MOTION_POINTS:]
+        rows, cols = np.divmod(chosen, width)
+        points = np.column_stack([cols, rows, np.ones(len(cols))])  # (N, 3)
+        x, y = _mapped(h[None], points)[0].T
+        keep = ((x >= MOTION_MARGIN_PX) & (x <= width - 1 - MOTION_MARGIN_PX)
+                & (y >= MOTION_MARGIN_PX) & (y <= height - 1 - MOTION_MARGIN_PX))
+        if keep.sum() < 10 * len(active):
+            break
+        rows, cols, points, x, y = rows[keep], cols[keep], points[keep], x[keep], y[keep]
+        grad_x, grad_y = grad_x[rows, cols].astype(np.float64), grad_y[rows, cols].astype(np.float64)
+        target = ref[rows, cols].astype(np.float64)
+        target -= target.mean()
+        moves = _point_slopes(points, h, down @ _turn_map_derivatives(params, k)[active] @ scale)
+        jacobian = grad_x[:, None] * moves[:, 0] + grad_y[:, None] * moves[:, 1]
+        hessian = jacobian.T @ jacobian
         try:
-            _, warp = cv2.findTransformECC(ref, img, warp, cv2.MOTION_EUCLIDEAN, criteria, mask, 1)
-        except cv2.error:
-            continue
-        found[:2] = warp
-        found[:2, 2] *= scale
-    return found
+            inverse = np.linalg.inv(hessian)
+        except np.linalg.LinAlgError:
+            break
+        target_projection = jacobian.T @ target
+        corners = _corners(ref.shape)
+        for _ in range(MOTION_ITERATIONS):
+            warped = _sampled(img, _mapped(h[None], points)[0])
+            warped -= warped.mean()
+            image_projection = jacobian.T @ warped
+            solved = inverse @ image_projection
+            denominator = target @ warped - target_projection @ solved
+            if not denominator > 0:
+                break
+            correlation = (warped @ warped - image_projection @ solved) / denominator
+            step = inverse @ (correlation * target_projection - image_projection)
+            params[active] += step
+            before, h = h, down @ _turn_map(params, k) @ scale
+            if np.abs(_mapped(h[None], corners) - _mapped(before[None], corners)).max() < MOTION_STEP_PX:
+                break
+    return params
 
 
-def camera_motion(frames: np.ndarray, passes: int = 2) -> np.ndarray:
-    """How each frame's background moved: (T, 3) rows ``(dx, dy, turn)`` of (T, H, W, 3) uint8 BGR
-    ``frames`` against the clip's background: the move of the image centre in pixels and the turn
-    about it in degrees (counter-clockwise on the screen), so that a still camera's pixel ``p``
-    lies at ``R(turn)(p - c) + c + (dx, dy)`` in the frame (:func:`_motion_matrices`), taken about
-    the frames' median (a still camera reads zeros). What a small turn of a camera held in the
-    hand does to a far background: about the line of sight it turns the picture; about an axis
-    across it, it shifts the picture to first order, and the rest (the homography ``K R K^-1``
-    stretches the picture's edges) is not measured: a pan or tilt of 0.2 deg RMS leaves a still
-    frame's corners about 1 px off and its centre 0.2 px (experiments/discover/HISTORY.md, *A
-    camera that turns about any axis*). A move towards the scene, or one that shows parallax, is
-    not measured.
+def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2) -> np.ndarray:
+    """How each frame's background moved: (T, 3, 3) maps of (T, H, W, 3) uint8 BGR ``frames``
+    against the clip's background, so that a still camera's pixel ``p = (x, y, 1)`` lies at
+    ``H p`` (divided by its third entry) in the frame, taken about the frames' typical map (a
+    still camera reads the identity). Each map is a turn of the camera about its three axes seen
+    through its intrinsics, ``K R K^-1``, and a shift of the picture (:func:`_turn_map`): what a
+    small turn of a camera held in the hand does to a far background, exact for any axis (a pan
+    or tilt stretches the picture's edges), and a shift for what moves the picture as a whole.
+    Without ``camera`` the pan and tilt are not fitted: the map is a shift and a turn about the
+    image centre. A zoom, and a move that shows parallax, are not measured.
+    :func:`_motion_rows` reads a map's move and turn at the image centre.
 
-    Each pass registers every frame's grey levels, moved back by the motion so far
-    (:func:`stabilised`), against the median of those frames (:func:`_ecc_motion`), and composes
-    the move it finds. From the second pass on the object is left out: pixels more than
-    :data:`MOTION_OBJECT_DIFF` grey levels off that median, grown by
-    :data:`MOTION_OBJECT_GROW_PX`, take the median's value and are masked. The pyramid's
-    coarsest level sets how far a move can be found: a few pixels on a 160 x 120 clip, more on
-    larger frames (experiments/discover/HISTORY.md, *A camera that is not quite still*, *Taking
-    out a turn about the line of sight*)."""
-    size = frames.shape[1:3]
+    Each pass moves every frame's grey levels back by the motion so far (:func:`stabilised`),
+    takes their median as the reference, and registers each frame against it from its current
+    map (:func:`_register`); every pass but the last stops at the pyramid's second level, as it
+    only sharpens that median and finds the object. From the second pass on the object is left
+    out: pixels more than :data:`MOTION_OBJECT_DIFF` grey levels off the median, grown by
+    :data:`MOTION_OBJECT_GROW_PX`, are masked, and in the frame they take the median's value
+    seen through the frame's map. The typical map is that of the median parameters. The
+    pyramid's coarsest level sets how far a move can be found: a few pixels on a 160 x 120
+    clip, more on larger frames (experiments/discover/HISTORY.md, *A camera that is not quite
+    still*, *Taking out a turn about the line of sight*, *A registration by the homography*)."""
+    height, width = frames.shape[1:3]
+    if camera is None:
+        k = np.array([[width, 0.0, (width - 1) / 2], [0.0, width, (height - 1) / 2], [0.0, 0.0, 1.0]])
+        active = [2, 3, 4]  # a turn about the image centre and a shift: K's focal length does not enter
+    else:
+        k, active = np.asarray(camera.K, float), [0, 1, 2, 3, 4]
     grey = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames])
-    matrices = np.tile(np.eye(3), (len(grey), 1, 1))
+    params = np.zeros((len(grey), 5))
     grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
     for step in range(passes):
-        moved = np.stack([_moved_back(g, m, cv2.INTER_LINEAR) for g, m in zip(grey, matrices)])
+        maps = np.stack([_turn_map(p, k) for p in params])
+        moved = np.stack([_moved_back(g, m, cv2.INTER_LINEAR) for g, m in zip(grey, maps)])
         reference = np.median(moved, axis=0).astype(np.float32)
         for t in range(len(grey)):
-            still, image = None, moved[t]
+            still, image = None, grey[t]
             if step > 0:
-                still = cv2.dilate((np.abs(moved[t] - reference) > MOTION_OBJECT_DIFF).astype(np.uint8), grow) == 0
-                image = np.where(still, moved[t], reference).astype(np.float32)
-            matrices[t] = matrices[t] @ _ecc_motion(reference, image, still)
-    typical = _motion_matrices(np.median(_motion_rows(matrices, size), axis=0)[None], size)[0]
-    return _motion_rows(matrices @ np.linalg.inv(typical), size)
+                changed = cv2.dilate((np.abs(moved[t] - reference) > MOTION_OBJECT_DIFF).astype(np.uint8), grow)
+                still = changed == 0
+                in_frame = cv2.warpPerspective(changed, maps[t], (width, height), flags=cv2.INTER_NEAREST) > 0
+                seen = cv2.warpPerspective(reference, maps[t], (width, height), flags=cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_REPLICATE)
+                image = np.where(in_frame, seen, grey[t]).astype(np.float32)
+            params[t] = _register(reference, image, still, k, params[t], active, finest=1 if step < passes - 1 else 0)
+    maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(np.median(params, axis=0), k))
+    return maps / maps[:, 2:, 2:]
 
 
 # --------------------------------------------------------------------------------------
@@ -1283,14 +1397,17 @@ def _undistort(masks: np.ndarray, camera: Camera) -> np.ndarray:
 
 def _cache_key(path: Path, kind: str, start: int, stop: int | None,
                settings: SegmentationSettings, camera: Camera | None = None) -> str:
-    """The segmentation cache's key: the source files, range and settings, and a distorted
-    camera's K and coefficients (its coverage moments are taken undistorted)."""
+    """The segmentation cache's key: the source files, range and settings, the camera's K (the
+    camera's motion is registered through it, :func:`camera_motion`) and a distorted camera's
+    coefficients (its coverage moments are taken undistorted)."""
     files = _list_images(path) if path.is_dir() else [path]
     stamps = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in files]
     content = {"version": _CACHE_VERSION, "path": str(path.resolve()), "files": stamps, "kind": kind,
                "start": start, "stop": stop, "settings": asdict(settings)}
+    if camera is not None:
+        content["K"] = np.asarray(camera.K).tolist()
     if camera is not None and camera.distorted:
-        content["lens"] = [np.asarray(camera.K).tolist(), list(map(float, camera.dist_coeffs))]
+        content["lens"] = list(map(float, camera.dist_coeffs))
     payload = json.dumps(content, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:20]
 
@@ -1410,7 +1527,7 @@ def load_observation(
         else:
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
-        motion = camera_motion(frames)
+        motion = camera_motion(frames, camera)
         moved_back = settings.stabilise is True or (settings.stabilise == "auto"
                                                     and _largest_move(motion, frames.shape[1:3]) > STILL_PX)
         if moved_back:

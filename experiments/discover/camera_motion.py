@@ -3,7 +3,8 @@
     python experiments/discover/camera_motion.py SET... [--out FILE]
 
 For every recording in each ``SET`` (folders beside this file, e.g. ``recordings``
-``recordings_fresh1``, or any path holding recording folders): the largest move of any pixel of
+``recordings_fresh1``, or any path holding recording folders), registered through its own
+``camera.json`` as ``load_observation`` does: the largest move of any pixel of
 its frames' backgrounds (a corner), the RMS shift of the image centre, in px, and the RMS turn
 about it, in degrees. Where the folder holds ``shake.json`` (``shake.py``): how far from the
 shake's own map the found one puts a still frame's corners and centre (RMS over the frames of
@@ -24,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from shake import shake_maps, shake_motion
-from torchfit.video import STILL_PX, _corners, _largest_move, _motion_matrices, _read_video, camera_motion
+from torchfit.camera import Camera
+from torchfit.video import STILL_PX, _corners, _largest_move, _mapped, _motion_rows, _read_video, camera_motion
 
 HERE = Path(__file__).resolve().parent
 
@@ -33,9 +35,10 @@ def measure(folder: Path) -> dict:
     """The recording ``folder``'s motion, summarised (and against its shake when it has one)."""
     frames, _ = _read_video(folder / "video.mp4", 0, None)
     size = frames.shape[1:3]
-    motion = camera_motion(frames)
+    maps = camera_motion(frames, Camera.from_file(folder / "camera.json"))
+    motion = _motion_rows(maps, size)  # the centre's move and the turn there
     shift = np.linalg.norm(motion[:, :2], axis=1)
-    row = {"largest_px": _largest_move(motion, size), "rms_px": float(np.sqrt((shift ** 2).mean())),
+    row = {"largest_px": _largest_move(maps, size), "rms_px": float(np.sqrt((shift ** 2).mean())),
            "turn_rms_deg": float(np.sqrt((motion[:, 2] ** 2).mean()))}
     if (folder / "shake.json").exists():
         shake = json.loads((folder / "shake.json").read_text())
@@ -43,9 +46,7 @@ def measure(folder: Path) -> dict:
         # where the image centre and the corners of a still frame lie in each frame, found and true,
         # about their medians over the frames (a registration is relative to the clip's own frames)
         points = np.vstack([_corners(size), [[(size[1] - 1) / 2, (size[0] - 1) / 2, 1.0]]])
-        found_at = np.einsum("tij,kj->tki", _motion_matrices(motion, size), points)
-        truth_at = np.einsum("tij,kj->tki", truth_maps, points)
-        apart = found_at[..., :2] / found_at[..., 2:] - truth_at[..., :2] / truth_at[..., 2:]
+        apart = _mapped(maps, points) - _mapped(truth_maps, points)
         apart = np.linalg.norm(apart - np.median(apart, axis=0), axis=2)  # (T, 5)
         row["shake_rms_px"] = float(np.sqrt((np.asarray(shake["offsets_px"]) ** 2).sum(1).mean()))
         row["corner_error_rms_px"] = float(np.sqrt((apart[:, :4].max(1) ** 2).mean()))

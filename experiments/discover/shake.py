@@ -1,6 +1,6 @@
 """A camera that is not quite still: a concealed recording refilmed with a small shake.
 
-    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo] [--roll DEG]
+    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo] [--roll DEG] [--turn DEG]
     python -m torchfit experiment=discover_video data.video=DIR/NAME_shakeA/video.mp4 \
         object.mesh=DIR/NAME_shakeA/mesh.obj object.density=D camera.file=DIR/NAME_shakeA/camera.json
 
@@ -21,14 +21,15 @@ its line of sight. Folders ``NAME_shake<A>_roll<DEG>/``; ``shake.json`` holds th
 ``--turn DEG`` turns the camera itself about its own centre: a pan and a tilt of ``DEG`` degrees
 RMS each (and the ``--roll`` about its axis), made like the offsets, so each frame is the
 still one seen through the homography ``K R K^-1`` of the recording's own ``camera.json``
-(then moved by the offsets). A camera held in the hand turns this way; a shift and a turn of
-the picture (what ``torchfit.video.camera_motion`` measures) is its first-order part, exact at
-the principal point and off by ``angle * r^2 / f`` at a distance ``r`` from it. Folders
+(then moved by the offsets). A camera held in the hand turns this way, and
+``torchfit.video.camera_motion`` measures such a homography; a shift and a turn of the picture
+is its first-order part, exact at the principal point and off by ``angle * r^2 / f`` at a
+distance ``r`` from it. Folders
 ``NAME_shake<A>[_roll<DEG>]_turn<DEG>/``; ``shake.json`` holds each frame's map
 (``maps``, 3 x 3, a still pixel to the frame's).
 
-``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>]_undone/``: the refilmed video's frames
-moved back by the shake's own offsets and turns (``torchfit.video.stabilised``) as lossless PNGs,
+``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>][_turn<DEG>]_undone/``: the refilmed video's
+frames moved back by the shake's own maps (``torchfit.video.stabilised``) as lossless PNGs,
 with the same files beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
 the frames back costs when the offsets are exact.
 """
@@ -164,15 +165,15 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float =
 
 
 def undo(target: Path) -> Path:
-    """The refilmed recording ``target``'s frames moved back by its shake's own offsets and turns,
+    """The refilmed recording ``target``'s frames moved back by its shake's own maps (:func:`shake_maps`),
     as PNGs in ``<target>_undone/`` with its other files; returns that folder."""
     from torchfit.video import _read_video, stabilised
 
     frames, _ = _read_video(target / "video.mp4", 0, None)
-    motion = shake_motion(json.loads((target / "shake.json").read_text()))
+    maps = shake_maps(json.loads((target / "shake.json").read_text()), frames.shape[1:3])
     undone = target.with_name(target.name + "_undone")
     undone.mkdir(exist_ok=True)
-    for t, frame in enumerate(stabilised(frames, motion)):
+    for t, frame in enumerate(stabilised(frames, maps)):
         cv2.imwrite(str(undone / f"{t:03d}.png"), frame)
     for name in ("mesh.obj", "camera.json", "truth.json", "shake.json"):
         shutil.copy(target / name, undone / name)
@@ -192,8 +193,6 @@ def main(argv=None) -> None:
     ap.add_argument("--turn", type=float, default=0.0, metavar="DEG",
                     help="also pan and tilt the camera, DEG degrees RMS each (a homography)")
     args = ap.parse_args(argv)
-    if args.undo and args.turn:
-        raise SystemExit("--undo moves the frames back by a shift and a turn; it does not take --turn")
     folder = HERE / args.set / args.name
     if not (folder / "truth.json").exists():
         raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
