@@ -912,7 +912,8 @@ def test_turn_map_is_the_turned_cameras_homography_and_its_slopes_match_finite_d
         ahead, back = params.copy(), params.copy()
         ahead[i] += step
         back[i] -= step
-        numeric = (_mapped(_turn_map(ahead, k)[None], points) - _mapped(_turn_map(back, k)[None], points))[0] / (2 * step)
+        numeric = (_mapped(_turn_map(ahead, k)[None], points) - _mapped(_turn_map(back, k)[None], points))[0]
+        numeric /= 2 * step
         np.testing.assert_allclose(slopes[:, :, i], numeric, rtol=1e-5, atol=1e-6)
     assert np.abs(slopes[:, :, 1]).max() > 600  # a pan moves a pixel about f per radian
 
@@ -964,6 +965,22 @@ def test_camera_motion_reads_a_known_shake():
     assert np.sqrt((error.max(1) ** 2).mean()) < 0.1 and np.sqrt((error[:, 4] ** 2).mean()) < 0.02
     still = camera_motion(_shaken_scene(np.tile(np.eye(3), (20, 1, 1))))
     assert _map_error(still, np.tile(np.eye(3), (20, 1, 1))).max() < 0.03
+
+
+def test_a_background_without_texture_does_not_register():
+    """Against a flat background a registration has only noise and the moving object to go by
+    (it once moved a corner thousands of pixels); a frame whose background does not correlate
+    with the clip's (``MOTION_MIN_CORRELATION``) keeps its map, so the clip reads as still."""
+    from torchfit.video import STILL_PX, _largest_move, camera_motion
+
+    rng = np.random.default_rng(5)
+    frames = np.full((10, 120, 160, 3), (170, 180, 200), np.float64)
+    v, u = np.mgrid[0:120, 0:160]
+    for t, frame in enumerate(frames):
+        disc = (u - 30 - 10 * t) ** 2 + (v - 60) ** 2 <= 12 ** 2
+        frame[disc] = (40, 40, 40)
+    frames = np.clip(np.rint(frames + rng.normal(0, 1.0, frames.shape)), 0, 255).astype(np.uint8)
+    assert _largest_move(camera_motion(frames), (120, 160)) < STILL_PX
 
 
 def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):

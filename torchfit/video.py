@@ -85,10 +85,10 @@ SHADING_FITS = ("constant", "linear")
 _CACHE_VERSION = 9
 # stabilise="auto": the frames are moved back when some pixel of some frame's background lies more
 # than this many pixels from the clip's (camera_motion; a frame's corners, where a turn moves most).
-# The 160 still concealed recordings move no pixel more than 0.021 px; refilmed with a smooth shake
+# The 160 still concealed recordings move no pixel more than 0.052 px; refilmed with a smooth shake
 # of 1 px RMS per axis, three of five controls named an effect unless the frames were moved back,
 # and none when they were (experiments/discover/HISTORY.md, *A camera that is not quite still*,
-# *Taking out a turn about the line of sight*).
+# *Taking out a turn about the line of sight*, *A registration by the homography*).
 STILL_PX = 0.25
 # camera_motion: pixels whose grey level lies this far from the aligned background are the object's
 # (or another mover's) and are left out of the registration, grown by MOTION_OBJECT_GROW_PX
@@ -99,6 +99,10 @@ LANCZOS_REACH_PX = 4
 MOTION_PYRAMID_MIN_PX = 48  # camera_motion's coarsest level keeps at least this many pixels a side
 MOTION_ITERATIONS = 50  # camera_motion's Gauss-Newton steps at most, per pyramid level
 MOTION_STEP_PX = 1e-3  # ... and a level stops when a step moves no corner more (that level's px)
+MOTION_HALVINGS = 4  # ... or when a step, halved this many times, still lowers the correlation
+# a frame whose background correlates less than this with the clip's, once registered, keeps its map:
+# a background with too little texture (a flat wall, the sky) registers its noise and the object
+MOTION_MIN_CORRELATION = 0.8
 MOTION_MARGIN_PX = 2  # a level registers the pixels its start maps at least this far inside the frame
 MOTION_POINTS = 40_000  # ... of at most this many valid pixels, the steepest in the reference
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
@@ -179,8 +183,8 @@ class SegmentationSettings:
             of its clean neighbours (three each side) is flagged.
         max_background_frames: frames (evenly spaced) that feed the background model.
         stabilise: move each frame back by its background's move (:func:`camera_motion`, the
-            camera's turn and a shift) before anything else, so a camera that shook in the hand is seen as a
-            still one: ``True``, ``False`` (the motion is still measured and reported) or
+            camera's turn and a shift) before anything else, so a camera that shook in the hand
+            is seen as a still one: ``True``, ``False`` (the motion is still measured and reported) or
             ``"auto"`` (the default): when some pixel of some frame moved more than
             :data:`STILL_PX`.
     """
@@ -471,7 +475,7 @@ def _motion_rows(maps: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     centre = np.array([(width - 1) / 2, (height - 1) / 2, 1.0])
     shift = _mapped(maps, centre[None])[:, 0] - centre[:2]
     w = maps[:, 2] @ centre  # (T,) the homogeneous scale at the centre
-    jac = (maps[:, :2, :2] - np.einsum("ti,tj->tij", _mapped(maps, centre[None])[:, 0], maps[:, 2, :2])) / w[:, None, None]
+    jac = (maps[:, :2, :2] - np.einsum("ti,tj->tij", shift + centre[:2], maps[:, 2, :2])) / w[:, None, None]
     turns = np.degrees(np.arctan2(jac[:, 0, 1] - jac[:, 1, 0], jac[:, 0, 0] + jac[:, 1, 1]))
     return np.column_stack([shift, turns])
 
@@ -622,20 +626,23 @@ def _sampled(image: np.ndarray, at: np.ndarray) -> np.ndarray:
     count, row = len(at), 1024
     shape = (-(-count // row), row)
     at_x, at_y = (np.resize(v.astype(np.float32), shape[0] * row).reshape(shape) for v in at.T)
-    return cv2.remap(image, at_x, at_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)[:count].astype(np.float64)
+    sampled = cv2.remap(image, at_x, at_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return sampled.reshape(-1)[:count].astype(np.float64)
 
 
 def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None, k: np.ndarray,
-              params: np.ndarray, active: list[int], finest: int = 0) -> np.ndarray:
+              params: np.ndarray, active: list[int], finest: int = 0) -> tuple[np.ndarray, float]:
     """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
-    fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
+    fitted), and the correlation they reach on the last level (NaN where none ran), with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
     pixels of ``reference`` (all when None), by ECC's Gauss-Newton step (Evangelidis and
     Psarakis, 2008: the correlation of the zero-mean images, so a change of exposure does not
     move the map), coarse to fine on a Gaussian pyramid (halved while the smaller side stays at
     least :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none;
-    ``finest`` levels at the bottom are left out (a coarser, cheaper estimate). A level stops
-    when a step moves no corner by more than :data:`MOTION_STEP_PX` of its pixels, after
-    :data:`MOTION_ITERATIONS` steps, or where the step is undefined (it then keeps its estimate)."""
+    ``finest`` levels at the bottom are left out (a coarser, cheaper estimate). A step that
+    lowers the correlation is halved, up to :data:`MOTION_HALVINGS` times, and then refused, so
+    a background with too little texture to register leaves the map where it was. A level
+    stops when a step moves no corner by more than :data:`MOTION_STEP_PX` of its pixels, after
+    :data:`MOTION_ITERATIONS` steps, or where a step is refused or undefined."""
     levels = [(reference, image, np.ones(reference.shape, bool) if valid is None else valid)]
     while min(levels[-1][0].shape) >= 2 * MOTION_PYRAMID_MIN_PX:
         ref, img, mask = levels[-1]
@@ -643,7 +650,7 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
                        cv2.resize(mask.astype(np.uint8), (img.shape[1] // 2 + img.shape[1] % 2,
                                                           img.shape[0] // 2 + img.shape[0] % 2),
                                   interpolation=cv2.INTER_NEAREST) > 0))
-    params = np.array(params, float)
+    params, score = np.array(params, float), float("nan")
     for level in range(len(levels) - 1, min(finest, len(levels) - 1) - 1, -1):
         ref, img, mask = levels[level]
         height, width = ref.shape
@@ -679,9 +686,17 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
             break
         target_projection = jacobian.T @ target
         corners = _corners(ref.shape)
+
+        def centred(h):
+            values = _sampled(img, _mapped(h[None], points)[0])
+            return values - values.mean()
+
+        def agreement(warped):  # ECC's criterion, the correlation of the zero-mean values
+            return float(target @ warped) / max(float(np.linalg.norm(target) * np.linalg.norm(warped)), 1e-12)
+
+        warped = centred(h)
+        score = agreement(warped)
         for _ in range(MOTION_ITERATIONS):
-            warped = _sampled(img, _mapped(h[None], points)[0])
-            warped -= warped.mean()
             image_projection = jacobian.T @ warped
             solved = inverse @ image_projection
             denominator = target @ warped - target_projection @ solved
@@ -689,11 +704,22 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
                 break
             correlation = (warped @ warped - image_projection @ solved) / denominator
             step = inverse @ (correlation * target_projection - image_projection)
-            params[active] += step
-            before, h = h, down @ _turn_map(params, k) @ scale
-            if np.abs(_mapped(h[None], corners) - _mapped(before[None], corners)).max() < MOTION_STEP_PX:
+            for _ in range(MOTION_HALVINGS + 1):  # a step that lowers the criterion is halved, then refused
+                trial = params.copy()
+                trial[active] += step
+                trial_h = down @ _turn_map(trial, k) @ scale
+                trial_warped = centred(trial_h)
+                trial_score = agreement(trial_warped)
+                if trial_score >= score:
+                    break
+                step = step / 2
+            else:
                 break
-    return params
+            moved = np.abs(_mapped(trial_h[None], corners) - _mapped(h[None], corners)).max()
+            params, h, warped, score = trial, trial_h, trial_warped, trial_score
+            if moved < MOTION_STEP_PX:
+                break
+    return params, score
 
 
 def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2) -> np.ndarray:
@@ -740,7 +766,10 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
                 seen = cv2.warpPerspective(reference, maps[t], (width, height), flags=cv2.INTER_LINEAR,
                                            borderMode=cv2.BORDER_REPLICATE)
                 image = np.where(in_frame, seen, grey[t]).astype(np.float32)
-            params[t] = _register(reference, image, still, k, params[t], active, finest=1 if step < passes - 1 else 0)
+            found, score = _register(reference, image, still, k, params[t], active,
+                                     finest=1 if step < passes - 1 else 0)
+            if score >= MOTION_MIN_CORRELATION:  # else the background did not register: left where it was
+                params[t] = found
     maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(np.median(params, axis=0), k))
     return maps / maps[:, 2:, 2:]
 
