@@ -99,7 +99,7 @@ LANCZOS_REACH_PX = 4
 MOTION_PYRAMID_MIN_PX = 48  # camera_motion's coarsest level keeps at least this many pixels a side
 MOTION_ITERATIONS = 50  # camera_motion's Gauss-Newton steps at most, per pyramid level
 MOTION_STEP_PX = 1e-3  # ... and a level stops when a step moves no corner more (that level's px)
-MOTION_HALVINGS = 4  # ... or when a step, halved this many times, still lowers the correlation
+MOTION_SCORE_DROP = 0.05  # a level whose steps lower the correlation more than this keeps its start
 # a frame whose background correlates less than this with the clip's, once registered, keeps its map:
 # a background with too little texture (a flat wall, the sky) registers its noise and the object
 MOTION_MIN_CORRELATION = 0.8
@@ -638,11 +638,11 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
     Psarakis, 2008: the correlation of the zero-mean images, so a change of exposure does not
     move the map), coarse to fine on a Gaussian pyramid (halved while the smaller side stays at
     least :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none;
-    ``finest`` levels at the bottom are left out (a coarser, cheaper estimate). A step that
-    lowers the correlation is halved, up to :data:`MOTION_HALVINGS` times, and then refused, so
-    a background with too little texture to register leaves the map where it was. A level
-    stops when a step moves no corner by more than :data:`MOTION_STEP_PX` of its pixels, after
-    :data:`MOTION_ITERATIONS` steps, or where a step is refused or undefined."""
+    ``finest`` levels at the bottom are left out (a coarser, cheaper estimate). A level stops
+    when a step moves no corner by more than :data:`MOTION_STEP_PX` of its pixels, after
+    :data:`MOTION_ITERATIONS` steps, or where a step is undefined; one whose steps lowered the
+    correlation by more than :data:`MOTION_SCORE_DROP` keeps its start (on a background with too
+    little texture to register, the steps run off)."""
     levels = [(reference, image, np.ones(reference.shape, bool) if valid is None else valid)]
     while min(levels[-1][0].shape) >= 2 * MOTION_PYRAMID_MIN_PX:
         ref, img, mask = levels[-1]
@@ -695,7 +695,7 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
             return float(target @ warped) / max(float(np.linalg.norm(target) * np.linalg.norm(warped)), 1e-12)
 
         warped = centred(h)
-        score = agreement(warped)
+        start, start_score = params.copy(), agreement(warped)
         for _ in range(MOTION_ITERATIONS):
             image_projection = jacobian.T @ warped
             solved = inverse @ image_projection
@@ -703,22 +703,14 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
             if not denominator > 0:
                 break
             correlation = (warped @ warped - image_projection @ solved) / denominator
-            step = inverse @ (correlation * target_projection - image_projection)
-            for _ in range(MOTION_HALVINGS + 1):  # a step that lowers the criterion is halved, then refused
-                trial = params.copy()
-                trial[active] += step
-                trial_h = down @ _turn_map(trial, k) @ scale
-                trial_warped = centred(trial_h)
-                trial_score = agreement(trial_warped)
-                if trial_score >= score:
-                    break
-                step = step / 2
-            else:
+            params[active] += inverse @ (correlation * target_projection - image_projection)
+            before, h = h, down @ _turn_map(params, k) @ scale
+            warped = centred(h)
+            if np.abs(_mapped(h[None], corners) - _mapped(before[None], corners)).max() < MOTION_STEP_PX:
                 break
-            moved = np.abs(_mapped(trial_h[None], corners) - _mapped(h[None], corners)).max()
-            params, h, warped, score = trial, trial_h, trial_warped, trial_score
-            if moved < MOTION_STEP_PX:
-                break
+        score = agreement(warped)
+        if not score >= start_score - MOTION_SCORE_DROP:  # the steps ran off: the level keeps its start
+            params, score = start, start_score
     return params, score
 
 
