@@ -633,11 +633,13 @@ def _sampled(image: np.ndarray, at: np.ndarray) -> np.ndarray:
 def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None, k: np.ndarray,
               params: np.ndarray, active: list[int], finest: int = 0) -> tuple[np.ndarray, float]:
     """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
-    fitted), and the correlation they reach on the last level (NaN where none ran), with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
-    pixels of ``reference`` (all when None), by ECC's Gauss-Newton step (Evangelidis and
-    Psarakis, 2008: the correlation of the zero-mean images, so a change of exposure does not
-    move the map), coarse to fine on a Gaussian pyramid (halved while the smaller side stays at
-    least :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none;
+    fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
+    pixels of ``reference`` (all when None), and the correlation they reach on the last level
+    run (NaN where none ran). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
+    correlation of the zero-mean images, so a change of exposure does not move the map), its
+    Jacobian fixed per level from the reference's gradient, on the :data:`MOTION_POINTS`
+    steepest valid pixels; coarse to fine on a Gaussian pyramid (halved while the smaller side
+    stays at least :data:`MOTION_PYRAMID_MIN_PX`), so a move of several pixels is found from none;
     ``finest`` levels at the bottom are left out (a coarser, cheaper estimate). A level stops
     when a step moves no corner by more than :data:`MOTION_STEP_PX` of its pixels, after
     :data:`MOTION_ITERATIONS` steps, or where a step is undefined; one whose steps lowered the
@@ -702,8 +704,8 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
             denominator = target @ warped - target_projection @ solved
             if not denominator > 0:
                 break
-            correlation = (warped @ warped - image_projection @ solved) / denominator
-            params[active] += inverse @ (correlation * target_projection - image_projection)
+            gain = (warped @ warped - image_projection @ solved) / denominator  # ECC's lambda
+            params[active] += inverse @ (gain * target_projection - image_projection)
             before, h = h, down @ _turn_map(params, k) @ scale
             warped = centred(h)
             if np.abs(_mapped(h[None], corners) - _mapped(before[None], corners)).max() < MOTION_STEP_PX:
