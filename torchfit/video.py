@@ -100,8 +100,9 @@ MOTION_PYRAMID_MIN_PX = 48  # camera_motion's coarsest level keeps at least this
 MOTION_ITERATIONS = 50  # camera_motion's Gauss-Newton steps at most, per pyramid level
 MOTION_STEP_PX = 1e-3  # ... and a level stops when a step moves no corner more (that level's px)
 MOTION_SCORE_DROP = 0.05  # a level whose steps lower the correlation more than this keeps its start
-# a frame whose background correlates less than this with the clip's, once registered, keeps its map:
-# a background with too little texture (a flat wall, the sky) registers its noise and the object
+# a frame whose background correlates less than this with the clip's, once registered, keeps its map
+# (_register): a background with too little texture (a flat wall, the sky) registers its noise and
+# the object
 MOTION_MIN_CORRELATION = 0.8
 MOTION_MARGIN_PX = 2  # a level registers the pixels its start maps at least this far inside the frame
 MOTION_POINTS = 40_000  # ... of at most this many valid pixels, the steepest in the reference
@@ -450,7 +451,7 @@ def _motion_matrices(motion: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(T, 3, 3) the rigid maps ``p -> R(p - c) + c + d`` of (T, 3) rows ``(dx, dy, turn)`` (px,
     px, degrees counter-clockwise on the screen, as ``cv2.getRotationMatrix2D``) about the centre
     ``c`` of an image of ``size`` ``(H, W)``: a shift and a turn of the picture as a map
-    (:func:`camera_motion`'s kind)."""
+    (:func:`camera_motion`'s kind without a camera; ``shake.py`` and the tests build with it)."""
     height, width = size
     centre = ((width - 1) / 2, (height - 1) / 2)
     out = np.tile(np.eye(3), (len(motion), 1, 1))
@@ -631,11 +632,12 @@ def _sampled(image: np.ndarray, at: np.ndarray) -> np.ndarray:
 
 
 def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None, k: np.ndarray,
-              params: np.ndarray, active: list[int], finest: int = 0) -> tuple[np.ndarray, float]:
+              params: np.ndarray, active: list[int], finest: int = 0) -> np.ndarray:
     """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
     fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
-    pixels of ``reference`` (all when None), and the correlation they reach on the last level
-    run (NaN where none ran). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
+    pixels of ``reference`` (all when None): ``params`` as given where the background does not
+    register (it correlates less than :data:`MOTION_MIN_CORRELATION` on the last level run, or
+    no level ran). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
     correlation of the zero-mean images, so a change of exposure does not move the map), its
     Jacobian fixed per level from the reference's gradient, on the :data:`MOTION_POINTS`
     steepest valid pixels; coarse to fine on a Gaussian pyramid (halved while the smaller side
@@ -652,7 +654,7 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
                        cv2.resize(mask.astype(np.uint8), (img.shape[1] // 2 + img.shape[1] % 2,
                                                           img.shape[0] // 2 + img.shape[0] % 2),
                                   interpolation=cv2.INTER_NEAREST) > 0))
-    params, score = np.array(params, float), float("nan")
+    given, params, score = np.array(params, float), np.array(params, float), float("nan")
     for level in range(len(levels) - 1, min(finest, len(levels) - 1) - 1, -1):
         ref, img, mask = levels[level]
         height, width = ref.shape
@@ -713,7 +715,7 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
         score = agreement(warped)
         if not score >= start_score - MOTION_SCORE_DROP:  # the steps ran off: the level keeps its start
             params, score = start, start_score
-    return params, score
+    return params if score >= MOTION_MIN_CORRELATION else given
 
 
 def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2) -> np.ndarray:
@@ -760,10 +762,8 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
                 seen = cv2.warpPerspective(reference, maps[t], (width, height), flags=cv2.INTER_LINEAR,
                                            borderMode=cv2.BORDER_REPLICATE)
                 image = np.where(in_frame, seen, grey[t]).astype(np.float32)
-            found, score = _register(reference, image, still, k, params[t], active,
-                                     finest=1 if step < passes - 1 else 0)
-            if score >= MOTION_MIN_CORRELATION:  # else the background did not register: left where it was
-                params[t] = found
+            params[t] = _register(reference, image, still, k, params[t], active,
+                                  finest=1 if step < passes - 1 else 0)
     maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(np.median(params, axis=0), k))
     return maps / maps[:, 2:, 2:]
 
