@@ -1346,7 +1346,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert motion.shape[1] == 2 and np.abs(motion).max() < 0.05 and content["stabilised"] is False
     assert np.abs(content["camera_turn_deg"]).max() < 0.01
     assert np.array(content["camera_maps"]).shape == (len(motion), 3, 3)
-    assert not any(line.startswith("The camera moved") for line in content["report"])
+    assert all(content["camera_registered"]) and min(content["camera_correlation"]) > 0.9
+    assert not any(line.startswith(("The camera moved", "The background of")) for line in content["report"])
 
 
 def test_robust_setting_is_hubers_on_the_exposure_path_by_default():

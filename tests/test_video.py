@@ -949,29 +949,31 @@ def test_camera_motion_reads_a_known_shake():
 
     size = (120, 160)
     shift = _rigid(np.column_stack([_shake()[:, :2], np.zeros(20)]))
-    found = camera_motion(_shaken_scene(shift))
+    found = camera_motion(_shaken_scene(shift)).maps
     error = _map_error(found, shift)
     assert np.sqrt((error.max(1) ** 2).mean()) < 0.04 and error.max() < 0.1
     assert np.abs(_motion_rows(found, size)[:, 2]).max() < 0.01
     turned = _shake(amplitude=1.0, turn=0.5, seed=2)
-    found = camera_motion(_shaken_scene(_rigid(turned)))
+    found = camera_motion(_shaken_scene(_rigid(turned))).maps
     assert np.sqrt((_map_error(found, _rigid(turned)).max(1) ** 2).mean()) < 0.04
     assert np.abs(_motion_rows(found, size)[:, 2] - turned[:, 2]).max() < 0.02
     camera = _turned_camera(1.0)
     rigid_part = _rigid(_motion_rows(camera, size))  # the first-order map the rigid registration took
     assert np.sqrt((_map_error(rigid_part, camera).max(1) ** 2).mean()) > 1.0
-    found = camera_motion(_shaken_scene(camera), Camera(150.0, 150.0, 79.5, 59.5, 160, 120))
+    found = camera_motion(_shaken_scene(camera), Camera(150.0, 150.0, 79.5, 59.5, 160, 120)).maps
     error = _map_error(found, camera)
     assert np.sqrt((error.max(1) ** 2).mean()) < 0.1 and np.sqrt((error[:, 4] ** 2).mean()) < 0.02
     still = camera_motion(_shaken_scene(np.tile(np.eye(3), (20, 1, 1))))
-    assert _map_error(still, np.tile(np.eye(3), (20, 1, 1))).max() < 0.03
+    assert _map_error(still.maps, np.tile(np.eye(3), (20, 1, 1))).max() < 0.03
+    assert still.registered.all() and still.correlation.min() > 0.99
 
 
 def test_a_background_without_texture_does_not_register():
     """Against a flat background a registration has only noise and the moving object to go by
     (it once moved a corner thousands of pixels); a frame whose background does not correlate
-    with the clip's (``MOTION_MIN_CORRELATION``) keeps its map, so the clip reads as still."""
-    from torchfit.video import STILL_PX, _largest_move, camera_motion
+    with the clip's (``MOTION_MIN_CORRELATION``) keeps its map, so the clip reads as still, and
+    says that it did not register."""
+    from torchfit.video import MOTION_MIN_CORRELATION, STILL_PX, _largest_move, camera_motion
 
     rng = np.random.default_rng(5)
     frames = np.full((10, 120, 160, 3), (170, 180, 200), np.float64)
@@ -980,7 +982,10 @@ def test_a_background_without_texture_does_not_register():
         disc = (u - 30 - 10 * t) ** 2 + (v - 60) ** 2 <= 12 ** 2
         frame[disc] = (40, 40, 40)
     frames = np.clip(np.rint(frames + rng.normal(0, 1.0, frames.shape)), 0, 255).astype(np.uint8)
-    assert _largest_move(camera_motion(frames), (120, 160)) < STILL_PX
+    found = camera_motion(frames)
+    assert _largest_move(found.maps, (120, 160)) < STILL_PX
+    assert not found.registered.any()
+    np.testing.assert_array_equal(found.registered, found.correlation >= MOTION_MIN_CORRELATION)
 
 
 def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
@@ -1018,6 +1023,52 @@ def test_a_shaken_clip_is_segmented_as_the_still_one(tmp_path):
     assert np.abs(observed_frames(moved).astype(float) - observed_frames(still).astype(float))[inner].mean() < 1.0
     assert "moved back before they were segmented" in camera_motion_note(moved)
     assert "not moved back" in camera_motion_note(kept) and "still camera" in camera_motion_note(kept)
+
+
+def test_frames_whose_background_does_not_register_are_said_and_left_out_of_a_moved_back_clip(tmp_path,
+                                                                                              monkeypatch):
+    """A shaken clip (1.5 px RMS) whose registration refuses frames 8 and 9 (their background
+    under ``MOTION_MIN_CORRELATION``, as a flat wall's is: the test above) says so
+    (``camera_registered``, ``camera_correlation``, ``discover.json``'s fields, the report's
+    note naming them) and, the clip being moved back, leaves them out of the fit ("camera move
+    not measured"); every other frame is used. Not moved back (``stabilise=False``), they
+    stay in, and the note warns that a move there would not be seen."""
+    from torchfit import video
+    from torchfit.video import CameraMotion, camera_motion_fields, camera_motion_note
+
+    shake = _rigid(_shake())
+    for t, frame in enumerate(_shaken_scene(shake)):
+        cv2.imwrite(str(tmp_path / f"{t:03d}.png"), frame)
+    lost = np.isin(np.arange(20), [8, 9])
+    correlation = np.where(lost, 0.5, 0.999)
+    correlation[9] = np.nan  # nothing left to compare
+    registered = video.camera_motion(_shaken_scene(shake))
+
+    def refusing(frames, camera=None):
+        maps = registered.maps.copy()
+        maps[lost] = np.eye(3)  # the map they kept
+        return CameraMotion(maps, correlation, ~lost)
+
+    monkeypatch.setattr(video, "camera_motion", refusing)
+    moved = load_observation(tmp_path, fps=60.0)
+    kept = load_observation(tmp_path, fps=60.0, settings=SegmentationSettings(stabilise=False))
+    assert moved.stabilised and not kept.stabilised
+    np.testing.assert_array_equal(moved.camera_registered, ~lost)
+    assert list(np.array(moved.reasons)[lost]) == ["camera move not measured"] * 2
+    assert moved.used[~lost].all() and not moved.used[lost].any()
+    assert "2 of 20 frames (8-9) did not register" in camera_motion_note(moved)
+    assert "left out of the fit" in camera_motion_note(moved)
+    fields = camera_motion_fields(moved)
+    assert fields["camera_registered"] == (~lost).tolist()
+    assert fields["camera_correlation"][8] == 0.5 and fields["camera_correlation"][9] is None
+    assert kept.used[lost].all() and "would not be seen" in camera_motion_note(kept)
+
+
+def test_frame_spans():
+    from torchfit.video import _frame_spans
+
+    assert _frame_spans(np.array([3, 7, 8, 9, 12])) == "3, 7-9, 12"
+    assert _frame_spans(np.array([0])) == "0"
 
 
 @pytest.mark.parametrize("value", ["yes", 1, None])

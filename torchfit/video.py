@@ -51,6 +51,7 @@ import json
 import math
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -82,7 +83,7 @@ BACKGROUND_METHODS = ("median", "mog2")
 TRANSFERS = ("auto", "linear", "srgb", "bt709", "hlg")
 COVERAGE_BANDS = ("steps", "motion")
 SHADING_FITS = ("constant", "linear")
-_CACHE_VERSION = 9
+_CACHE_VERSION = 10
 # stabilise="auto": the frames are moved back when some pixel of some frame's background lies more
 # than this many pixels from the clip's (camera_motion; a frame's corners, where a turn moves most).
 # The 160 still concealed recordings move no pixel more than 0.052 px; refilmed with a smooth shake
@@ -283,6 +284,9 @@ class Observation:
         stabilised: True when the frames were moved back by ``camera_motion`` before they were
             segmented (``SegmentationSettings.stabilise``): the masks are then in the still
             camera's place, and :func:`observed_frames` gives the frames as segmented.
+        camera_correlation: (T,) how well each frame's background, moved back, correlates with
+            the clip's (:class:`CameraMotion`); None for mask input. A frame under
+            :data:`MOTION_MIN_CORRELATION` did not register (:attr:`camera_registered`).
     """
 
     masks: np.ndarray
@@ -302,6 +306,15 @@ class Observation:
     coverage_moments: np.ndarray | None = None
     camera_motion: np.ndarray | None = None
     stabilised: bool = False
+    camera_correlation: np.ndarray | None = None
+
+    @property
+    def camera_registered(self) -> np.ndarray | None:
+        """(T,) bool, the frames whose background registered (:class:`CameraMotion`); None for
+        mask input."""
+        if self.camera_correlation is None:
+            return None
+        return np.nan_to_num(self.camera_correlation, nan=-1.0) >= MOTION_MIN_CORRELATION
 
     @property
     def camera_moved_px(self) -> float:
@@ -506,21 +519,50 @@ def camera_motion_fields(observation: Observation) -> dict:
     background move against the clip's, the image centre's shift ``camera_motion_px`` (T lists
     ``[x, y]``), the turn about it ``camera_turn_deg`` (T values, counter-clockwise on the
     screen; :func:`_motion_rows`) and the whole map ``camera_maps`` (T 3 x 3 homographies, a still
-    camera's pixel to the frame's), all None for mask input, and ``stabilised``, whether the
-    frames were moved back by it before the segmentation (:func:`camera_motion`)."""
-    maps = observation.camera_motion
+    camera's pixel to the frame's), each frame's background correlation with the clip's
+    ``camera_correlation`` (null where none) and whether it registered ``camera_registered``
+    (:class:`CameraMotion`), all None for mask input, and ``stabilised``, whether the frames
+    were moved back by it before the segmentation (:func:`camera_motion`)."""
+    maps, correlation = observation.camera_motion, observation.camera_correlation
     rows = None if maps is None else _motion_rows(maps, observation.masks.shape[1:3])
+    registered = observation.camera_registered
     return {"camera_motion_px": None if rows is None else rows[:, :2].tolist(),
             "camera_turn_deg": None if rows is None else rows[:, 2].tolist(),
             "camera_maps": None if maps is None else np.asarray(maps).tolist(),
+            "camera_correlation": None if correlation is None else [
+                float(c) if math.isfinite(c) else None for c in correlation],
+            "camera_registered": None if registered is None else registered.tolist(),
             "stabilised": bool(observation.stabilised)}
 
 
+def _frame_spans(frames: np.ndarray) -> str:
+    """(N,) sorted frame numbers as runs: ``"3, 7-9, 12"``."""
+    spans, start = [], None
+    for i, f in enumerate(frames):
+        start = f if start is None else start
+        if i + 1 == len(frames) or frames[i + 1] != f + 1:
+            spans.append(f"{start}" if start == f else f"{start}-{f}")
+            start = None
+    return ", ".join(spans)
+
+
 def camera_motion_note(observation: Observation) -> str:
-    """A sentence on the camera's motion for the log and the report ("" for mask input, or when
-    no pixel of any frame moved more than :data:`STILL_PX`)."""
+    """Sentences on the camera's motion for the log and the report ("" for mask input, or when
+    no pixel of any frame moved more than :data:`STILL_PX` and every frame's background
+    registered)."""
+    registered = observation.camera_registered
+    lost = ""
+    if registered is not None and not registered.all():
+        frames = observation.frame_indices[~registered]
+        lost = (f"The background of {len(frames)} of {len(registered)} frames ({_frame_spans(frames)}) did not "
+                f"register: it correlates less than {MOTION_MIN_CORRELATION} with the clip's (too little "
+                f"texture, or too much of it hidden). " + (
+                    "Their move is not measured, and they are left out of the fit (camera move not measured)."
+                    if observation.stabilised else
+                    "A move of the camera in them would not be seen, and what the model finds there may be the "
+                    "camera's motion."))
     if observation.camera_moved_px <= STILL_PX:
-        return ""
+        return lost
     size = observation.masks.shape[1:3]
     moves = _frame_moves(observation.camera_motion, size)
     rows = _motion_rows(observation.camera_motion, size)
@@ -531,9 +573,11 @@ def camera_motion_note(observation: Observation) -> str:
             f"{float(np.sqrt((shifts ** 2).mean())):.2f} px and the turn about the line of sight RMS "
             f"{float(np.sqrt((turns ** 2).mean())):.3f} deg)")
     if observation.stabilised:
-        return line + "; the frames were moved back before they were segmented (data.segmentation.stabilise)."
-    return line + ("; the frames were not moved back (data.segmentation.stabilise=false), and the model "
-                   "takes a still camera: what it finds may be the camera's motion.")
+        line += "; the frames were moved back before they were segmented (data.segmentation.stabilise)."
+    else:
+        line += ("; the frames were not moved back (data.segmentation.stabilise=false), and the model "
+                 "takes a still camera: what it finds may be the camera's motion.")
+    return line + (" " + lost if lost else "")
 
 
 def _moved_back(image: np.ndarray, matrix: np.ndarray, flags: int) -> np.ndarray:
@@ -632,12 +676,13 @@ def _sampled(image: np.ndarray, at: np.ndarray) -> np.ndarray:
 
 
 def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None, k: np.ndarray,
-              params: np.ndarray, active: list[int], finest: int = 0) -> np.ndarray:
+              params: np.ndarray, active: list[int], finest: int = 0,
+              min_correlation: float = MOTION_MIN_CORRELATION) -> tuple[np.ndarray, float]:
     """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
     fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
-    pixels of ``reference`` (all when None): ``params`` as given where the background does not
-    register (it correlates less than :data:`MOTION_MIN_CORRELATION` on the last level run, or
-    no level ran). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
+    pixels of ``reference`` (all when None), and the correlation they reach on the last level
+    run (NaN when no level ran): ``params`` as given where the background does not register
+    (that correlation is under ``min_correlation``, or not a number). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
     correlation of the zero-mean images, so a change of exposure does not move the map), its
     Jacobian fixed per level from the reference's gradient, on the :data:`MOTION_POINTS`
     steepest valid pixels; coarse to fine on a Gaussian pyramid (halved while the smaller side
@@ -715,14 +760,34 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
         score = agreement(warped)
         if not score >= start_score - MOTION_SCORE_DROP:  # the steps ran off: the level keeps its start
             params, score = start, start_score
-    return params if score >= MOTION_MIN_CORRELATION else given
+    return (params if score >= min_correlation else given), score
 
 
-def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2) -> np.ndarray:
+class CameraMotion(NamedTuple):
+    """What :func:`camera_motion` found.
+
+    Attributes:
+        maps: (T, 3, 3) each frame's map of a still camera's pixel to the frame's.
+        correlation: (T,) how well each frame's background, moved back by its map, correlates
+            with the clip's on the last pass (NaN where nothing could be compared).
+        registered: (T,) bool, the frames whose correlation reached the floor on the last pass;
+            another keeps the map of the pass before (the identity after one pass): its move is
+            not measured.
+    """
+
+    maps: np.ndarray
+    correlation: np.ndarray
+    registered: np.ndarray
+
+
+def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2,
+                  min_correlation: float = MOTION_MIN_CORRELATION) -> CameraMotion:
     """How each frame's background moved: (T, 3, 3) maps of (T, H, W, 3) uint8 BGR ``frames``
     against the clip's background, so that a still camera's pixel ``p = (x, y, 1)`` lies at
     ``H p`` (divided by its third entry) in the frame, taken about the frames' typical map (a
-    still camera reads the identity). Each map is a turn of the camera about its three axes seen
+    still camera reads the identity), with each frame's correlation and whether it reached
+    ``min_correlation`` (:class:`CameraMotion`; a frame that does not, on a background with too
+    little texture, keeps the map it had). Each map is a turn of the camera about its three axes seen
     through its intrinsics, ``K R K^-1``, and a shift of the picture (:func:`_turn_map`): what a
     small turn of a camera held in the hand does to a far background, exact for any axis (a pan
     or tilt stretches the picture's edges), and a shift for what moves the picture as a whole.
@@ -747,7 +812,7 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
     else:
         k, active = np.asarray(camera.K, float), [0, 1, 2, 3, 4]
     grey = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames])
-    params = np.zeros((len(grey), 5))
+    params, correlation = np.zeros((len(grey), 5)), np.full(len(grey), np.nan)
     grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
     for step in range(passes):
         maps = np.stack([_turn_map(p, k) for p in params])
@@ -762,10 +827,11 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
                 seen = cv2.warpPerspective(reference, maps[t], (width, height), flags=cv2.INTER_LINEAR,
                                            borderMode=cv2.BORDER_REPLICATE)
                 image = np.where(in_frame, seen, grey[t]).astype(np.float32)
-            params[t] = _register(reference, image, still, k, params[t], active,
-                                  finest=1 if step < passes - 1 else 0)
+            params[t], correlation[t] = _register(reference, image, still, k, params[t], active,
+                                                  finest=1 if step < passes - 1 else 0,
+                                                  min_correlation=min_correlation)
     maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(np.median(params, axis=0), k))
-    return maps / maps[:, 2:, 2:]
+    return CameraMotion(maps / maps[:, 2:, 2:], correlation, correlation >= min_correlation)
 
 
 # --------------------------------------------------------------------------------------
@@ -1263,11 +1329,15 @@ def raw_moments(images: np.ndarray) -> np.ndarray:
 
 
 def _segment(frames: np.ndarray, settings: SegmentationSettings,
-             undistort: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+             undistort: tuple[np.ndarray, np.ndarray] | None = None,
+             trusted: np.ndarray | None = None) -> dict:
     """Segment (T, H, W, 3) uint8 BGR frames; returns the arrays that are cached. ``undistort``:
     the camera's undistortion maps (:func:`_undistort_maps`), through which each frame's soft
     coverage is resampled (linearly: a coverage is a fraction, so a point takes the value where
-    it was imaged) before its moments are taken; the masks stay as imaged."""
+    it was imaged) before its moments are taken; the masks stay as imaged. ``trusted``: (T,)
+    bool, the frames the object's colour is learnt from (all when None): a frame out of place
+    against the background (a camera move not measured) differs from it everywhere, and would
+    teach the background's colours as the object's."""
     background_bgr = _estimate_background(frames, settings)
     background = _luma_chroma(_decode(background_bgr, settings.transfer), settings.chroma_weight)
     frames = _luma_chroma(_decode(frames, settings.transfer), settings.chroma_weight)
@@ -1289,10 +1359,11 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
         if len(areas) > 1:
             second_frac[t] = areas[order[1]] / areas[order[0]] if areas[order[1]] >= settings.min_area else 0
 
-    # Albedo direction A of the object from its confident (eroded) pixels in all frames.
-    core = _morph(seeds, "erosion", 1)
+    # Albedo direction A of the object from its confident (eroded) pixels in all trusted frames.
+    taught = seeds if trusted is None else seeds & trusted[:, None, None]
+    core = _morph(taught, "erosion", 1)
     if core.sum() < 10:
-        core = seeds
+        core = taught
     if not core.any():
         return {"masks": seeds, "background": background_bgr, "second_frac": second_frac,
                 "coverage_moments": raw_moments(seeds)}
@@ -1360,16 +1431,20 @@ def _boxes(masks: np.ndarray) -> np.ndarray:
 
 
 def _flag(masks: np.ndarray, second_frac: np.ndarray, settings: SegmentationSettings,
-          unseen: np.ndarray | None = None) -> list[str]:
+          unseen: np.ndarray | None = None, unmeasured: np.ndarray | None = None) -> list[str]:
     """One reason per frame, ``""`` for frames fit to use. ``unseen``: (T, H, W) bool, the border
     each frame did not see (:func:`unseen_pixels`; none when None): a mask beside it touches the
-    frame's border."""
+    frame's border. ``unmeasured``: (T,) bool, the frames of a clip moved back whose background
+    did not register (:class:`CameraMotion`; none when None): where they lie in a still camera is
+    not known."""
     areas = masks.sum(axis=(1, 2))
     reasons = []
     for t, mask in enumerate(masks):
         beside_unseen = unseen is not None and bool(
             (cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)[unseen[t]].any())
-        if areas[t] < settings.min_area:
+        if unmeasured is not None and unmeasured[t]:  # first: a frame out of place may lose its object
+            reasons.append("camera move not measured")
+        elif areas[t] < settings.min_area:
             reasons.append("no object")
         elif mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any() or beside_unseen:
             reasons.append("touches the image border")
@@ -1530,7 +1605,7 @@ def load_observation(
         cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings, camera)}.npz"
         cached = _load_cache(cache_file)
 
-    background, motion, moved_back, unseen = None, None, False, None
+    background, motion, correlation, moved_back, unseen = None, None, None, False, None
     if kind == "masks":
         masks = _read_mask_folder(paths, start, stop)
         second_frac = np.array([
@@ -1544,19 +1619,22 @@ def load_observation(
         background, cover_moments = cached["background"], cached["coverage_moments"]
         frame_fps = float(fps) if fps is not None else float(cached["fps"])
         motion, moved_back = cached["camera_motion"], bool(cached["stabilised"])
+        correlation = cached["camera_correlation"]
     else:
         if kind == "video":
             frames, file_fps = _read_video(path, start, stop)
         else:
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
-        motion = camera_motion(frames, camera)
+        motion, correlation, _ = camera_motion(frames, camera)
         moved_back = settings.stabilise is True or (settings.stabilise == "auto"
                                                     and _largest_move(motion, frames.shape[1:3]) > STILL_PX)
         if moved_back:
             unseen = unseen_pixels(motion, frames.shape[1:3])
             frames = _background_where_unseen(stabilised(frames, motion), unseen)
-        segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None)
+        registered = np.nan_to_num(correlation, nan=-1.0) >= MOTION_MIN_CORRELATION
+        segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None,
+                             registered if moved_back else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
         background = cv2.cvtColor(
@@ -1568,7 +1646,7 @@ def load_observation(
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(cache_file, masks=masks, second_frac=second_frac,
                                 background=background, fps=file_fps, coverage_moments=cover_moments,
-                                camera_motion=motion, stabilised=moved_back)
+                                camera_motion=motion, stabilised=moved_back, camera_correlation=correlation)
     _check_size(masks.shape[1:3], camera, path)
 
     if distorted:  # a frame's coverage moments were taken undistorted (_segment)
@@ -1579,7 +1657,10 @@ def load_observation(
         unseen = unseen_pixels(motion, masks.shape[1:3]) if unseen is None else unseen  # None: from the cache
         if distorted:
             unseen = _undistort(unseen, camera)
-    reasons = _flag(masks, second_frac, settings, unseen)
+    unmeasured = None
+    if moved_back:  # where the camera moved, a frame whose move is not measured has no still place
+        unmeasured = ~(np.nan_to_num(correlation, nan=-1.0) >= MOTION_MIN_CORRELATION)
+    reasons = _flag(masks, second_frac, settings, unseen, unmeasured)
     if all(r == "no object" for r in reasons):
         raise ValueError(
             f"nothing moves in {str(path)!r}: no frame has an object "
@@ -1603,6 +1684,7 @@ def load_observation(
         coverage_moments=cover_moments,
         camera_motion=motion,
         stabilised=moved_back,
+        camera_correlation=correlation,
     )
 
 

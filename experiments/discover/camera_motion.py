@@ -1,6 +1,6 @@
 """How far the background of each concealed recording moves (``torchfit.video.camera_motion``).
 
-    python experiments/discover/camera_motion.py SET... [--out FILE]
+    python experiments/discover/camera_motion.py SET... [--out FILE] [--min-correlation C]
 
 For every recording in each ``SET`` (folders beside this file, e.g. ``recordings``
 ``recordings_fresh1``, or any path holding recording folders), registered through its own
@@ -10,7 +10,10 @@ about it, in degrees. Where the folder holds ``shake.json`` (``shake.py``): how 
 shake's own map the found one puts a still frame's corners and centre (RMS over the frames of
 the worst corner, the largest, the centre's RMS; each point's error about its median over the
 frames), and for a shake of the picture (no ``--turn``) the RMS and largest error of the
-centre's shift and the RMS error of the turn (about their medians). The concealed recordings are filmed from a
+centre's shift and the RMS error of the turn (about their medians). Each row also holds every
+frame's background correlation with the clip's and whether it registered (``frame_correlation``,
+``frame_registered``; ``--min-correlation`` sets the floor, :data:`torchfit.video.MOTION_MIN_CORRELATION`
+by default) and, with a shake, every frame's worst-corner error (``frame_corner_error_px``). The concealed recordings are filmed from a
 still camera: their largest move is what ``SegmentationSettings.stabilise="auto"`` must stay
 under (:data:`torchfit.video.STILL_PX`) to leave them as they were. Writes
 ``results/camera_motion.json`` (or ``--out``).
@@ -26,20 +29,23 @@ import numpy as np
 
 from shake import shake_maps, shake_motion
 from torchfit.camera import Camera
-from torchfit.video import STILL_PX, _corners, _largest_move, _mapped, _motion_rows, _read_video, camera_motion
+from torchfit.video import (MOTION_MIN_CORRELATION, STILL_PX, _corners, _largest_move, _mapped, _motion_rows,
+                            _read_video, camera_motion)
 
 HERE = Path(__file__).resolve().parent
 
 
-def measure(folder: Path) -> dict:
+def measure(folder: Path, min_correlation: float = MOTION_MIN_CORRELATION) -> dict:
     """The recording ``folder``'s motion, summarised (and against its shake when it has one)."""
     frames, _ = _read_video(folder / "video.mp4", 0, None)
     size = frames.shape[1:3]
-    maps = camera_motion(frames, Camera.from_file(folder / "camera.json"))
+    maps, correlation, registered = camera_motion(frames, Camera.from_file(folder / "camera.json"),
+                                                  min_correlation=min_correlation)
     motion = _motion_rows(maps, size)  # the centre's move and the turn there
     shift = np.linalg.norm(motion[:, :2], axis=1)
     row = {"largest_px": _largest_move(maps, size), "rms_px": float(np.sqrt((shift ** 2).mean())),
-           "turn_rms_deg": float(np.sqrt((motion[:, 2] ** 2).mean()))}
+           "turn_rms_deg": float(np.sqrt((motion[:, 2] ** 2).mean())),
+           "refused": int((~registered).sum()), "correlation_min": float(np.nanmin(correlation, initial=np.inf))}
     if (folder / "shake.json").exists():
         shake = json.loads((folder / "shake.json").read_text())
         truth_maps = shake_maps(shake, size)
@@ -52,6 +58,7 @@ def measure(folder: Path) -> dict:
         row["corner_error_rms_px"] = float(np.sqrt((apart[:, :4].max(1) ** 2).mean()))
         row["corner_error_largest_px"] = float(apart[:, :4].max())
         row["centre_error_rms_px"] = float(np.sqrt((apart[:, 4] ** 2).mean()))
+        row["frame_corner_error_px"] = apart[:, :4].max(1).tolist()
         if "maps" in shake:  # a turned camera: its pan and tilt
             row["shake_pan_tilt_rms_deg"] = float(np.sqrt((np.asarray(shake["turn_deg"]) ** 2).mean()))
         else:  # a shift and a turn of the picture: the rows themselves
@@ -61,6 +68,8 @@ def measure(folder: Path) -> dict:
             row["error_rms_px"] = float(np.sqrt((error[:, :2] ** 2).sum(1).mean()))
             row["error_largest_px"] = float(np.linalg.norm(error[:, :2], axis=1).max())
             row["turn_error_rms_deg"] = float(np.sqrt((error[:, 2] ** 2).mean()))
+    row["frame_correlation"] = [float(c) if np.isfinite(c) else None for c in correlation]
+    row["frame_registered"] = registered.tolist()
     return row
 
 
@@ -68,14 +77,17 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sets", nargs="+", help="folders of recordings (beside this file or paths)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "camera_motion.json")
+    ap.add_argument("--min-correlation", type=float, default=MOTION_MIN_CORRELATION,
+                    help="the registration's floor (torchfit.video.MOTION_MIN_CORRELATION)")
     args = ap.parse_args(argv)
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
     for name in args.sets:
         folder = Path(name) if Path(name).is_absolute() else HERE / name
         for recording in sorted(f for f in folder.iterdir() if (f / "video.mp4").exists()):
-            row = measure(recording)
+            row = measure(recording, args.min_correlation)
             result[f"{name}/{recording.name}"] = row
-            print(name, recording.name, " ".join(f"{k} {v:.3f}" for k, v in row.items()), flush=True)
+            print(name, recording.name, " ".join(f"{k} {v:.3f}" for k, v in row.items() if not isinstance(v, list)),
+                  flush=True)
         args.out.write_text(json.dumps(result, indent=1))
     still = [r["largest_px"] for r in result.values() if "shake_rms_px" not in r]
     if still:

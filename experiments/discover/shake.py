@@ -1,6 +1,6 @@
 """A camera that is not quite still: a concealed recording refilmed with a small shake.
 
-    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo] [--roll DEG] [--turn DEG]
+    python experiments/discover/shake.py SET NAME AMPLITUDE... [--out DIR] [--seed S] [--undo] [--roll DEG] [--turn DEG] [--flatten C]
     python -m torchfit experiment=discover_video data.video=DIR/NAME_shakeA/video.mp4 \
         object.mesh=DIR/NAME_shakeA/mesh.obj object.density=D camera.file=DIR/NAME_shakeA/camera.json
 
@@ -28,6 +28,15 @@ distance ``r`` from it. Folders
 ``NAME_shake<A>[_roll<DEG>]_turn<DEG>/``; ``shake.json`` holds each frame's map
 (``maps``, 3 x 3, a still pixel to the frame's).
 
+``--flatten C`` first scales the texture of the background by ``C`` (0 to 1), as if the scene
+were a plainer wall: each frame becomes ``frame - (1 - C) w (B - B_low)``, with ``B`` the
+recording's median frame (its still background), ``B_low`` that blurred by
+:data:`FLATTEN_SIGMA_PX` (the light's slow gradients stay) and ``w`` 1 away from the object
+(its true mask from ``masks.npz``, or where the frame lies more than
+:data:`FLATTEN_OBJECT_DIFF` grey levels off ``B``, grown by :data:`FLATTEN_GROW_PX` and
+feathered), 0 on it; the object and the codec's noise stay. Folders ``..._flat<C>/``
+(HISTORY.md, *A background with little texture*).
+
 ``--undo`` also writes ``DIR/NAME_shake<A>[_roll<DEG>][_turn<DEG>]_undone/``: the refilmed video's
 frames moved back by the shake's own maps (``torchfit.video.stabilised``) as lossless PNGs,
 with the same files beside them. Run with ``data.fps=FPS data.segmentation.stabilise=false``, it shows what moving
@@ -51,6 +60,9 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "recordings"))  # make_recordings.VideoWriter
 
 SMOOTH_FRAMES = 3.0  # the Gaussian's standard deviation, frames
+FLATTEN_SIGMA_PX = 25.0  # --flatten keeps the background's variations broader than this
+FLATTEN_OBJECT_DIFF = 10.0  # ... and leaves alone pixels this far off the background (the object, its blur)
+FLATTEN_GROW_PX = 2  # ... grown by this much, and feathered by a third of it
 
 
 def shake_path(frames: int, amplitude: float, seed: int) -> np.ndarray:
@@ -75,6 +87,22 @@ def shaken(frames: np.ndarray, offsets: np.ndarray, angles: np.ndarray | None = 
     maps = _motion_matrices(np.column_stack([offsets, angles]), (height, width))
     return np.stack([cv2.warpAffine(frame, warp[:2].astype(np.float32), (width, height), flags=cv2.INTER_LANCZOS4,
                                     borderMode=cv2.BORDER_REPLICATE) for frame, warp in zip(frames, maps)])
+
+
+def flattened(frames: np.ndarray, masks: np.ndarray, amount: float) -> np.ndarray:
+    """(T, H, W, 3) uint8 ``frames`` with their background's texture scaled by ``amount`` away
+    from the object, whose (T, H, W) bool ``masks`` are given (see ``--flatten``)."""
+    still = np.median(frames, axis=0).astype(np.float32)
+    texture = still - cv2.GaussianBlur(still, (0, 0), FLATTEN_SIGMA_PX)
+    grow = np.ones((2 * FLATTEN_GROW_PX + 1,) * 2, np.uint8)
+    out = []
+    for frame, mask in zip(frames, masks):
+        near = mask | (np.abs(frame.astype(np.float32) - still).max(-1) > FLATTEN_OBJECT_DIFF)
+        near = cv2.GaussianBlur(cv2.dilate(near.astype(np.uint8), grow).astype(np.float32), (0, 0),
+                                FLATTEN_GROW_PX / 3)
+        away = 1.0 - np.clip(near, 0.0, 1.0)
+        out.append(np.clip(np.rint(frame - (1.0 - amount) * away[..., None] * texture), 0, 255).astype(np.uint8))
+    return np.stack(out)
 
 
 def shake_motion(shake: dict) -> np.ndarray:
@@ -129,10 +157,12 @@ def store_like(path: Path, spec: dict, frames: np.ndarray) -> None:
     writer.release()
 
 
-def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float = 0.0, turn: float = 0.0) -> Path:
+def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float = 0.0, turn: float = 0.0,
+         flatten: float = 1.0) -> Path:
     """The recording ``folder`` refilmed with a shake of ``amplitude`` px RMS (and a turn about the
     line of sight of ``roll`` degrees RMS; with ``turn``, the camera panned and tilted by that many
-    degrees RMS each, :func:`turn_maps`) into ``out``; returns the new folder."""
+    degrees RMS each, :func:`turn_maps`) into ``out``, its background's texture first scaled by
+    ``flatten`` (:func:`flattened`, when under 1); returns the new folder."""
     from torchfit.video import _read_video
 
     if not (amplitude >= 0):
@@ -140,13 +170,19 @@ def make(folder: Path, amplitude: float, out: Path, seed: int = 0, roll: float =
     truth = json.loads((folder / "truth.json").read_text())
     spec = truth["spec"]
     frames, _ = _read_video(folder / "video.mp4", 0, None)  # BGR
+    if not (0 <= flatten <= 1):
+        raise SystemExit(f"--flatten must lie between 0 and 1, got {flatten}")
+    if flatten < 1:
+        with np.load(folder / "masks.npz") as archive:
+            frames = flattened(frames, archive["masks"], flatten)
     offsets = shake_path(len(frames), amplitude, seed + zlib.crc32(folder.name.encode()))
     angles = shake_path(len(frames), roll, seed + 1 + zlib.crc32(folder.name.encode()))[:, 0] if roll else None
     target = out / (f"{folder.name}_shake{amplitude:g}" + (f"_roll{roll:g}" if roll else "")
-                    + (f"_turn{turn:g}" if turn else ""))
+                    + (f"_turn{turn:g}" if turn else "") + (f"_flat{flatten:g}" if flatten < 1 else ""))
     target.mkdir(parents=True, exist_ok=True)
     record = {"source": str(folder), "amplitude_px": amplitude, "smooth_frames": SMOOTH_FRAMES,
-              "offsets_px": offsets.tolist(), "roll_deg": None if angles is None else angles.tolist()}
+              "offsets_px": offsets.tolist(), "roll_deg": None if angles is None else angles.tolist(),
+              "flatten": flatten}
     if turn:
         pan_tilt = shake_path(len(frames), turn, seed + 2 + zlib.crc32(folder.name.encode()))
         maps = turn_maps(offsets, pan_tilt, np.zeros(len(frames)) if angles is None else angles,
@@ -192,12 +228,14 @@ def main(argv=None) -> None:
                     help="also turn each frame about the image centre, DEG degrees RMS")
     ap.add_argument("--turn", type=float, default=0.0, metavar="DEG",
                     help="also pan and tilt the camera, DEG degrees RMS each (a homography)")
+    ap.add_argument("--flatten", type=float, default=1.0, metavar="C",
+                    help="first scale the background's texture by C (0 to 1): a plainer wall")
     args = ap.parse_args(argv)
     folder = HERE / args.set / args.name
     if not (folder / "truth.json").exists():
         raise SystemExit(f"no concealed recording {folder}: make it with make_concealed.py")
     for amplitude in args.amplitudes:
-        target = make(folder, amplitude, args.out, args.seed, args.roll, args.turn)
+        target = make(folder, amplitude, args.out, args.seed, args.roll, args.turn, args.flatten)
         print(target, flush=True)
         if args.undo:
             print(undo(target), flush=True)
