@@ -1034,7 +1034,7 @@ def test_frames_whose_background_does_not_register_are_said_and_left_out_of_a_mo
     not measured"); every other frame is used. Not moved back (``stabilise=False``), they
     stay in, and the note warns that a move there would not be seen."""
     from torchfit import video
-    from torchfit.video import CameraMotion, camera_motion_fields, camera_motion_note
+    from torchfit.video import camera_motion_fields, camera_motion_note
 
     shake = _rigid(_shake())
     for t, frame in enumerate(_shaken_scene(shake)):
@@ -1047,7 +1047,7 @@ def test_frames_whose_background_does_not_register_are_said_and_left_out_of_a_mo
     def refusing(frames, camera=None):
         maps = registered.maps.copy()
         maps[lost] = np.eye(3)  # the map they kept
-        return CameraMotion(maps, correlation, ~lost)
+        return registered._replace(maps=maps, correlation=correlation, registered=~lost)
 
     monkeypatch.setattr(video, "camera_motion", refusing)
     moved = load_observation(tmp_path, fps=60.0)

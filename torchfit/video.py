@@ -105,6 +105,9 @@ MOTION_SCORE_DROP = 0.05  # a level whose steps lower the correlation more than 
 # (_register): a background with too little texture (a flat wall, the sky) registers its noise and
 # the object
 MOTION_MIN_CORRELATION = 0.8
+# camera_motion's standard errors: the Gauss-Newton's, which takes the pixels as independent, times this
+MOTION_SIGMA_FACTOR = 1.0
+MOTION_TILE_PX = 16  # ... whose residuals are taken as correlated within tiles of this many pixels a side
 MOTION_MARGIN_PX = 2  # a level registers the pixels its start maps at least this far inside the frame
 MOTION_POINTS = 40_000  # ... of at most this many valid pixels, the steepest in the reference
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
@@ -677,12 +680,15 @@ def _sampled(image: np.ndarray, at: np.ndarray) -> np.ndarray:
 
 def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None, k: np.ndarray,
               params: np.ndarray, active: list[int], finest: int = 0,
-              min_correlation: float = MOTION_MIN_CORRELATION) -> tuple[np.ndarray, float]:
+              min_correlation: float = MOTION_MIN_CORRELATION) -> tuple[np.ndarray, float, np.ndarray]:
     """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
     fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
-    pixels of ``reference`` (all when None), and the correlation they reach on the last level
-    run (NaN when no level ran): ``params`` as given where the background does not register
-    (that correlation is under ``min_correlation``, or not a number). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
+    pixels of ``reference`` (all when None), the correlation they reach on the last level run
+    (NaN when no level ran), and (K, K) the covariance of the K ``active`` parameters there,
+    ``s² (JᵀJ)⁻¹`` with ``s²`` the variance of the residual between the moved image (scaled by
+    ECC's gain to the reference) and the reference, the pixels taken as independent (NaN when
+    no level ran): ``params`` as given where the background does not register (that
+    correlation is under ``min_correlation``, or not a number). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
     correlation of the zero-mean images, so a change of exposure does not move the map), its
     Jacobian fixed per level from the reference's gradient, on the :data:`MOTION_POINTS`
     steepest valid pixels; coarse to fine on a Gaussian pyramid (halved while the smaller side
@@ -700,6 +706,7 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
                                                           img.shape[0] // 2 + img.shape[0] % 2),
                                   interpolation=cv2.INTER_NEAREST) > 0))
     given, params, score = np.array(params, float), np.array(params, float), float("nan")
+    covariance = np.full((len(active), len(active)), np.nan)
     for level in range(len(levels) - 1, min(finest, len(levels) - 1) - 1, -1):
         ref, img, mask = levels[level]
         height, width = ref.shape
@@ -744,7 +751,7 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
             return float(target @ warped) / max(float(np.linalg.norm(target) * np.linalg.norm(warped)), 1e-12)
 
         warped = centred(h)
-        start, start_score = params.copy(), agreement(warped)
+        start, start_score, start_warped = params.copy(), agreement(warped), warped
         for _ in range(MOTION_ITERATIONS):
             image_projection = jacobian.T @ warped
             solved = inverse @ image_projection
@@ -759,8 +766,15 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
                 break
         score = agreement(warped)
         if not score >= start_score - MOTION_SCORE_DROP:  # the steps ran off: the level keeps its start
-            params, score = start, start_score
-    return (params if score >= min_correlation else given), score
+            params, score, warped = start, start_score, start_warped
+        gain = float(warped @ target) / max(float(target @ target), 1e-12)  # the image ~ gain x the reference
+        residual = warped / gain - target if gain > 0 else np.full_like(target, np.nan)
+        # the sandwich (JᵀJ)⁻¹ (Σ_b g_b g_bᵀ) (JᵀJ)⁻¹ over tiles b of MOTION_TILE_PX, g_b a tile's
+        # summed J_i r_i: the residuals of neighbouring pixels are correlated (the codec's blocks, blur)
+        tile = (rows // MOTION_TILE_PX) * (width // MOTION_TILE_PX + 1) + cols // MOTION_TILE_PX
+        scores = np.stack([np.bincount(tile, jacobian[:, i] * residual) for i in range(len(active))], 1)
+        covariance = inverse @ (scores.T @ scores) @ inverse
+    return (params if score >= min_correlation else given), score, covariance
 
 
 class CameraMotion(NamedTuple):
@@ -773,11 +787,22 @@ class CameraMotion(NamedTuple):
         registered: (T,) bool, the frames whose correlation reached the floor on the last pass;
             another keeps the map of the pass before (the identity after one pass): its move is
             not measured.
+        sigma_px: (T, 4) the standard error of where each frame's map puts each corner of a
+            still frame (px, the root of the trace of its 2 x 2 covariance; NaN where nothing
+            was compared), from the last pass's Gauss-Newton (:func:`_register`) times
+            :data:`MOTION_SIGMA_FACTOR`.
+        chi2: (T,) each frame's fitted parameters, about the clip's typical ones, weighed by
+            their inverse covariance (times the factor squared): about ``dof`` for a still
+            camera (NaN where nothing was compared).
+        dof: the parameters fitted per frame (5 with a camera, 3 without).
     """
 
     maps: np.ndarray
     correlation: np.ndarray
     registered: np.ndarray
+    sigma_px: np.ndarray
+    chi2: np.ndarray
+    dof: int
 
 
 def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2,
@@ -813,6 +838,7 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
         k, active = np.asarray(camera.K, float), [0, 1, 2, 3, 4]
     grey = np.stack([cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames])
     params, correlation = np.zeros((len(grey), 5)), np.full(len(grey), np.nan)
+    covariance = np.full((len(grey), len(active), len(active)), np.nan)
     grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
     for step in range(passes):
         maps = np.stack([_turn_map(p, k) for p in params])
@@ -827,11 +853,26 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
                 seen = cv2.warpPerspective(reference, maps[t], (width, height), flags=cv2.INTER_LINEAR,
                                            borderMode=cv2.BORDER_REPLICATE)
                 image = np.where(in_frame, seen, grey[t]).astype(np.float32)
-            params[t], correlation[t] = _register(reference, image, still, k, params[t], active,
-                                                  finest=1 if step < passes - 1 else 0,
-                                                  min_correlation=min_correlation)
-    maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(np.median(params, axis=0), k))
-    return CameraMotion(maps / maps[:, 2:, 2:], correlation, correlation >= min_correlation)
+            params[t], correlation[t], covariance[t] = _register(
+                reference, image, still, k, params[t], active, finest=1 if step < passes - 1 else 0,
+                min_correlation=min_correlation)
+    typical = np.median(params, axis=0)
+    maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(typical, k))
+    covariance = covariance * MOTION_SIGMA_FACTOR ** 2
+    corners = _corners((height, width))
+    sigma = np.full((len(grey), 4), np.nan)
+    chi2 = np.full(len(grey), np.nan)
+    for t in range(len(grey)):
+        if np.isfinite(covariance[t]).all():
+            slopes = _point_slopes(corners, _turn_map(params[t], k), _turn_map_derivatives(params[t], k)[active])
+            sigma[t] = np.sqrt(np.maximum(np.einsum("cik,kl,cil->c", slopes, covariance[t], slopes), 0.0))
+            apart = (params[t] - typical)[active]
+            try:
+                chi2[t] = float(apart @ np.linalg.solve(covariance[t], apart))
+            except np.linalg.LinAlgError:
+                pass
+    return CameraMotion(maps / maps[:, 2:, 2:], correlation, correlation >= min_correlation, sigma, chi2,
+                        len(active))
 
 
 # --------------------------------------------------------------------------------------
@@ -1626,7 +1667,8 @@ def load_observation(
         else:
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
-        motion, correlation, _ = camera_motion(frames, camera)
+        found = camera_motion(frames, camera)
+        motion, correlation = found.maps, found.correlation
         moved_back = settings.stabilise is True or (settings.stabilise == "auto"
                                                     and _largest_move(motion, frames.shape[1:3]) > STILL_PX)
         if moved_back:

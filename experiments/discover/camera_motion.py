@@ -13,7 +13,10 @@ frames), and for a shake of the picture (no ``--turn``) the RMS and largest erro
 centre's shift and the RMS error of the turn (about their medians). Each row also holds every
 frame's background correlation with the clip's and whether it registered (``frame_correlation``,
 ``frame_registered``; ``--min-correlation`` sets the floor, :data:`torchfit.video.MOTION_MIN_CORRELATION`
-by default) and, with a shake, every frame's worst-corner error (``frame_corner_error_px``). The concealed recordings are filmed from a
+by default), every frame's worst-corner error against the shake's map, or the identity without
+one (``frame_corner_error_px``; each corner's, ``corner_errors_px``), each corner's standard
+error (``corner_sigma_px``) and each frame's chi-squared (``frame_chi2``, ``chi2_per_dof``;
+``torchfit.video.CameraMotion``). The concealed recordings are filmed from a
 still camera: their largest move is what ``SegmentationSettings.stabilise="auto"`` must stay
 under (:data:`torchfit.video.STILL_PX`) to leave them as they were. Writes
 ``results/camera_motion.json`` (or ``--out``).
@@ -39,26 +42,28 @@ def measure(folder: Path, min_correlation: float = MOTION_MIN_CORRELATION) -> di
     """The recording ``folder``'s motion, summarised (and against its shake when it has one)."""
     frames, _ = _read_video(folder / "video.mp4", 0, None)
     size = frames.shape[1:3]
-    maps, correlation, registered = camera_motion(frames, Camera.from_file(folder / "camera.json"),
-                                                  min_correlation=min_correlation)
+    found = camera_motion(frames, Camera.from_file(folder / "camera.json"), min_correlation=min_correlation)
+    maps, correlation, registered = found.maps, found.correlation, found.registered
     motion = _motion_rows(maps, size)  # the centre's move and the turn there
     shift = np.linalg.norm(motion[:, :2], axis=1)
     row = {"largest_px": _largest_move(maps, size), "rms_px": float(np.sqrt((shift ** 2).mean())),
            "turn_rms_deg": float(np.sqrt((motion[:, 2] ** 2).mean())),
            "refused": int((~registered).sum()), "correlation_min": float(np.nanmin(correlation, initial=np.inf))}
-    if (folder / "shake.json").exists():
-        shake = json.loads((folder / "shake.json").read_text())
-        truth_maps = shake_maps(shake, size)
-        # where the image centre and the corners of a still frame lie in each frame, found and true,
-        # about their medians over the frames (a registration is relative to the clip's own frames)
-        points = np.vstack([_corners(size), [[(size[1] - 1) / 2, (size[0] - 1) / 2, 1.0]]])
-        apart = _mapped(maps, points) - _mapped(truth_maps, points)
-        apart = np.linalg.norm(apart - np.median(apart, axis=0), axis=2)  # (T, 5)
+    shake = json.loads((folder / "shake.json").read_text()) if (folder / "shake.json").exists() else None
+    truth_maps = np.tile(np.eye(3), (len(maps), 1, 1)) if shake is None else shake_maps(shake, size)
+    # where the image centre and the corners of a still frame lie in each frame, found and true (a
+    # still recording's truth: the identity), about their medians over the frames (a registration is
+    # relative to the clip's own frames)
+    points = np.vstack([_corners(size), [[(size[1] - 1) / 2, (size[0] - 1) / 2, 1.0]]])
+    apart = _mapped(maps, points) - _mapped(truth_maps, points)
+    apart = np.linalg.norm(apart - np.median(apart, axis=0), axis=2)  # (T, 5)
+    row["frame_corner_error_px"] = apart[:, :4].max(1).tolist()
+    row["corner_errors_px"] = apart[:, :4].tolist()
+    if shake is not None:
         row["shake_rms_px"] = float(np.sqrt((np.asarray(shake["offsets_px"]) ** 2).sum(1).mean()))
         row["corner_error_rms_px"] = float(np.sqrt((apart[:, :4].max(1) ** 2).mean()))
         row["corner_error_largest_px"] = float(apart[:, :4].max())
         row["centre_error_rms_px"] = float(np.sqrt((apart[:, 4] ** 2).mean()))
-        row["frame_corner_error_px"] = apart[:, :4].max(1).tolist()
         if "maps" in shake:  # a turned camera: its pan and tilt
             row["shake_pan_tilt_rms_deg"] = float(np.sqrt((np.asarray(shake["turn_deg"]) ** 2).mean()))
         else:  # a shift and a turn of the picture: the rows themselves
@@ -70,6 +75,11 @@ def measure(folder: Path, min_correlation: float = MOTION_MIN_CORRELATION) -> di
             row["turn_error_rms_deg"] = float(np.sqrt((error[:, 2] ** 2).mean()))
     row["frame_correlation"] = [float(c) if np.isfinite(c) else None for c in correlation]
     row["frame_registered"] = registered.tolist()
+    row["corner_sigma_px"] = np.where(np.isfinite(found.sigma_px), found.sigma_px, -1.0).tolist()
+    row["frame_chi2"] = [float(c) if np.isfinite(c) else None for c in found.chi2]
+    row["dof"] = found.dof
+    chi2 = found.chi2[np.isfinite(found.chi2)]
+    row["chi2_per_dof"] = float(chi2.sum() / (found.dof * max(len(chi2), 1)))
     return row
 
 
