@@ -1347,6 +1347,8 @@ def test_cli_speed_noise_and_robust_are_checked_and_recorded(tmp_path):
     assert np.abs(content["camera_turn_deg"]).max() < 0.01
     assert np.array(content["camera_maps"]).shape == (len(motion), 3, 3)
     assert all(content["camera_registered"]) and min(content["camera_correlation"]) > 0.9
+    assert len(content["camera_sigma_px"]) == len(motion) and 0 < min(content["camera_sigma_px"])
+    assert max(content["camera_sigma_px"]) < 0.1
     assert not any(line.startswith(("The camera moved", "The background of")) for line in content["report"])
 
 

@@ -63,6 +63,7 @@ def test_fit_small_recording_end_to_end(tmp_path):
     maps = np.array(result["camera_maps"])  # each frame's homography, near the identity
     assert maps.shape == (12, 3, 3) and np.abs(maps[:, :2, 2]).max() < 0.25
     assert result["camera_registered"] == [True] * 12 and min(result["camera_correlation"]) > 0.9
+    assert len(result["camera_sigma_px"]) == 12 and 0 < min(result["camera_sigma_px"]) < max(result["camera_sigma_px"]) < 0.25
     assert np.abs(maps[:, :2, :2] - np.eye(2)).max() < 1e-3 and np.abs(maps[:, 2, :2]).max() < 1e-5
     for name in ("iou.png", "loss.png", "overlay.mp4", "contact_sheet.png"):
         assert (tmp_path / name).stat().st_size > 0

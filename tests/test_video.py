@@ -968,6 +968,29 @@ def test_camera_motion_reads_a_known_shake():
     assert still.registered.all() and still.correlation.min() > 0.99
 
 
+def test_camera_motion_standard_errors_match_the_spread_of_its_maps():
+    """A still textured scene seen through independent pixel noise of 2 grey levels: the maps'
+    corners scatter about the identity as ``CameraMotion.sigma_px`` says before its factor for
+    correlated pixels (their RMS over the frames and corners within 0.6-1.6 times the RMS
+    standard error), and four times the noise gives about four times both; the chi-squared per
+    parameter is then about 1."""
+    from torchfit.video import MOTION_SIGMA_FACTOR, _corners, _mapped, camera_motion
+
+    still = _shaken_scene(np.tile(np.eye(3), (20, 1, 1))).astype(np.float64)
+    spreads = []
+    for noise in (2.0, 8.0):
+        rng = np.random.default_rng(11)
+        frames = np.clip(np.rint(still + rng.normal(0, noise, still.shape)), 0, 255).astype(np.uint8)
+        found = camera_motion(frames)
+        corners = _corners((120, 160))
+        error = np.linalg.norm(_mapped(found.maps, corners) - corners[None, :, :2], axis=2)  # (T, 4)
+        ratio = np.sqrt((error ** 2).mean()) / np.sqrt((found.sigma_px ** 2).mean()) * MOTION_SIGMA_FACTOR
+        assert 0.6 < ratio < 1.6, (noise, ratio)
+        assert 0.4 < found.chi2.mean() / found.dof * MOTION_SIGMA_FACTOR ** 2 < 2.5
+        spreads.append(np.sqrt((found.sigma_px ** 2).mean()))
+    assert 2.5 < spreads[1] / spreads[0] < 6
+
+
 def test_a_background_without_texture_does_not_register():
     """Against a flat background a registration has only noise and the moving object to go by
     (it once moved a corner thousands of pixels); a frame whose background does not correlate

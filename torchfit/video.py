@@ -105,9 +105,13 @@ MOTION_SCORE_DROP = 0.05  # a level whose steps lower the correlation more than 
 # (_register): a background with too little texture (a flat wall, the sky) registers its noise and
 # the object
 MOTION_MIN_CORRELATION = 0.8
-# camera_motion's standard errors: the Gauss-Newton's, which takes the pixels as independent, times this
-MOTION_SIGMA_FACTOR = 1.0
-MOTION_TILE_PX = 16  # ... whose residuals are taken as correlated within tiles of this many pixels a side
+# camera_motion's standard errors: the Gauss-Newton's, its residuals taken as correlated within tiles of
+# MOTION_TILE_PX a side, times this: the RMS corner error over the RMS standard error of the 40 still
+# recordings of fresh concealed sets 1 and 2 (1.075; 0.83-1.16 a recording once scaled). On smoother
+# backgrounds the errors run up to 2.5 times the standard errors (experiments/discover/HISTORY.md,
+# *A background with little texture*)
+MOTION_SIGMA_FACTOR = 1.075
+MOTION_TILE_PX = 16
 MOTION_MARGIN_PX = 2  # a level registers the pixels its start maps at least this far inside the frame
 MOTION_POINTS = 40_000  # ... of at most this many valid pixels, the steepest in the reference
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
@@ -290,6 +294,8 @@ class Observation:
         camera_correlation: (T,) how well each frame's background, moved back, correlates with
             the clip's (:class:`CameraMotion`); None for mask input. A frame under
             :data:`MOTION_MIN_CORRELATION` did not register (:attr:`camera_registered`).
+        camera_sigma_px: (T,) the standard error of each frame's map at its least certain corner
+            (px; NaN where nothing was compared; :class:`CameraMotion`); None for mask input.
     """
 
     masks: np.ndarray
@@ -310,6 +316,7 @@ class Observation:
     camera_motion: np.ndarray | None = None
     stabilised: bool = False
     camera_correlation: np.ndarray | None = None
+    camera_sigma_px: np.ndarray | None = None
 
     @property
     def camera_registered(self) -> np.ndarray | None:
@@ -523,8 +530,9 @@ def camera_motion_fields(observation: Observation) -> dict:
     ``[x, y]``), the turn about it ``camera_turn_deg`` (T values, counter-clockwise on the
     screen; :func:`_motion_rows`) and the whole map ``camera_maps`` (T 3 x 3 homographies, a still
     camera's pixel to the frame's), each frame's background correlation with the clip's
-    ``camera_correlation`` (null where none) and whether it registered ``camera_registered``
-    (:class:`CameraMotion`), all None for mask input, and ``stabilised``, whether the frames
+    ``camera_correlation`` (null where none), whether it registered ``camera_registered`` and
+    the standard error of its map at its least certain corner ``camera_sigma_px`` (px, null
+    where none; :class:`CameraMotion`), all None for mask input, and ``stabilised``, whether the frames
     were moved back by it before the segmentation (:func:`camera_motion`)."""
     maps, correlation = observation.camera_motion, observation.camera_correlation
     rows = None if maps is None else _motion_rows(maps, observation.masks.shape[1:3])
@@ -535,6 +543,8 @@ def camera_motion_fields(observation: Observation) -> dict:
             "camera_correlation": None if correlation is None else [
                 float(c) if math.isfinite(c) else None for c in correlation],
             "camera_registered": None if registered is None else registered.tolist(),
+            "camera_sigma_px": None if observation.camera_sigma_px is None else [
+                float(c) if math.isfinite(c) else None for c in observation.camera_sigma_px],
             "stabilised": bool(observation.stabilised)}
 
 
@@ -1646,7 +1656,7 @@ def load_observation(
         cache_file = Path(cache_dir) / f"masks_{_cache_key(path, kind, start, stop, settings, camera)}.npz"
         cached = _load_cache(cache_file)
 
-    background, motion, correlation, moved_back, unseen = None, None, None, False, None
+    background, motion, correlation, sigma, moved_back, unseen = None, None, None, None, False, None
     if kind == "masks":
         masks = _read_mask_folder(paths, start, stop)
         second_frac = np.array([
@@ -1660,7 +1670,7 @@ def load_observation(
         background, cover_moments = cached["background"], cached["coverage_moments"]
         frame_fps = float(fps) if fps is not None else float(cached["fps"])
         motion, moved_back = cached["camera_motion"], bool(cached["stabilised"])
-        correlation = cached["camera_correlation"]
+        correlation, sigma = cached["camera_correlation"], cached["camera_sigma_px"]
     else:
         if kind == "video":
             frames, file_fps = _read_video(path, start, stop)
@@ -1668,7 +1678,7 @@ def load_observation(
             frames, file_fps = _read_image_folder(paths, start, stop), 0.0
         _check_size(frames.shape[1:3], camera, path)
         found = camera_motion(frames, camera)
-        motion, correlation = found.maps, found.correlation
+        motion, correlation, sigma = found.maps, found.correlation, found.sigma_px.max(1)
         moved_back = settings.stabilise is True or (settings.stabilise == "auto"
                                                     and _largest_move(motion, frames.shape[1:3]) > STILL_PX)
         if moved_back:
@@ -1688,7 +1698,8 @@ def load_observation(
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(cache_file, masks=masks, second_frac=second_frac,
                                 background=background, fps=file_fps, coverage_moments=cover_moments,
-                                camera_motion=motion, stabilised=moved_back, camera_correlation=correlation)
+                                camera_motion=motion, stabilised=moved_back, camera_correlation=correlation,
+                                camera_sigma_px=sigma)
     _check_size(masks.shape[1:3], camera, path)
 
     if distorted:  # a frame's coverage moments were taken undistorted (_segment)
@@ -1727,6 +1738,7 @@ def load_observation(
         camera_motion=motion,
         stabilised=moved_back,
         camera_correlation=correlation,
+        camera_sigma_px=sigma,
     )
 
 

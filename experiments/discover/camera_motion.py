@@ -1,6 +1,7 @@
 """How far the background of each concealed recording moves (``torchfit.video.camera_motion``).
 
     python experiments/discover/camera_motion.py SET... [--out FILE] [--min-correlation C]
+    python experiments/discover/camera_motion.py --summary [--out FILE] [--sigma-scale S]
 
 For every recording in each ``SET`` (folders beside this file, e.g. ``recordings``
 ``recordings_fresh1``, or any path holding recording folders), registered through its own
@@ -83,14 +84,53 @@ def measure(folder: Path, min_correlation: float = MOTION_MIN_CORRELATION) -> di
     return row
 
 
+def summary(result: dict, sigma_scale: float = 1.0) -> list[str]:
+    """Lines of a table over the rows of ``result`` (:func:`measure`'s, by ``SET/NAME``) that hold
+    per-frame errors, grouped by set and by what ``shake.py`` added to the recording's name
+    (``_shake0_flat0.1``): the largest move, the frames that registered more than ``STILL_PX``
+    off at their worst corner, the frames refused, the lowest correlation, the RMS corner and
+    centre errors, and the RMS corner error over the RMS standard error (each standard error
+    times ``sigma_scale``: the factor it would take, against the one it was made with)."""
+    groups = {}
+    for key, row in result.items():
+        if "corner_errors_px" not in row:
+            continue
+        folder, name = key.rsplit("/", 1)
+        suffix = name[name.index("_shake"):] if "_shake" in name else ""
+        groups.setdefault((folder, suffix), []).append(row)
+    lines = ["| set | folders | largest move, px | frames registered > STILL_PX off | refused | lowest "
+             "correlation | corner error RMS, px | centre error RMS, px | corner error / standard error |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for (folder, suffix), rows in sorted(groups.items()):
+        largest = [r["largest_px"] for r in rows]
+        off = sum(int(e > STILL_PX and g) for r in rows for e, g in zip(r["frame_corner_error_px"], r["frame_registered"]))
+        errors = np.concatenate([np.ravel(r["corner_errors_px"]) for r in rows])
+        sigmas = np.concatenate([np.ravel(r["corner_sigma_px"]) for r in rows]) * sigma_scale
+        known = sigmas > 0
+        correlation = min(c for r in rows for c in r["frame_correlation"] if c is not None)
+        centre = [r["centre_error_rms_px"] for r in rows if "centre_error_rms_px" in r]
+        lines.append(
+            f"| {Path(folder).name}{suffix} | {len(rows)} | {min(largest):.3f}-{max(largest):.3f} | {off} | "
+            f"{sum(r['refused'] for r in rows)} | {correlation:.4f} | {np.sqrt((errors ** 2).mean()):.3f} | "
+            + (f"{min(centre):.3f}-{max(centre):.3f}" if centre else "-") + " | "
+            f"{np.sqrt((errors[known] ** 2).mean() / (sigmas[known] ** 2).mean()):.2f} |")
+    return lines
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("sets", nargs="+", help="folders of recordings (beside this file or paths)")
+    ap.add_argument("sets", nargs="*", help="folders of recordings (beside this file or paths)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "camera_motion.json")
     ap.add_argument("--min-correlation", type=float, default=MOTION_MIN_CORRELATION,
                     help="the registration's floor (torchfit.video.MOTION_MIN_CORRELATION)")
+    ap.add_argument("--summary", action="store_true", help="print the table of --out's rows (summary) and stop")
+    ap.add_argument("--sigma-scale", type=float, default=1.0,
+                    help="with --summary: scale the stored standard errors by this (they hold MOTION_SIGMA_FACTOR's value then)")
     args = ap.parse_args(argv)
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
+    if args.summary:
+        print("\n".join(summary(result, args.sigma_scale)))
+        return
     for name in args.sets:
         folder = Path(name) if Path(name).is_absolute() else HERE / name
         for recording in sorted(f for f in folder.iterdir() if (f / "video.mp4").exists()):
