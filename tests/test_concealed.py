@@ -13,6 +13,7 @@ import math
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -154,6 +155,31 @@ def test_sharp_set_changes_only_the_motion_blur(mods):
         assert np.array_equal(subframes[:, 0], times)
     assert mc.fresh_folder(0, sharp=True).name == "recordings_sharp"
     assert mc.fresh_folder(2, sharp=True).name == "recordings_fresh2_sharp"
+
+
+def test_plain_set_changes_only_the_scene(mods):
+    """--plain: the same throws in front of a wall and a floor of one colour each with their fine
+    grain alone (no panels, no tiles), and no cabinet or crate, in their own folder."""
+    mr, mc = mods
+    spec = next(s for s, _ in mc.concealed_specs(3) if s.name == "control_box")
+    plain = spec.replace(plain_scene=True)
+    assert plain.replace(plain_scene=False) == spec
+    mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+    rotation = mr.camera_rotation(spec.tilt_deg, spec.roll_deg)
+    assert '<geom name="cabinet"' in mr.build_model_xml(spec, mesh, rotation)[0]
+    assert '<geom name="crate"' in mr.build_model_xml(spec, mesh, rotation)[0]
+    assert "cabinet" not in mr.build_model_xml(plain, mesh, rotation)[0].split("<worldbody>")[1]
+    textured = mr._textures(3)
+    flat = mr._textures(3, plain=True)
+    decoded = {k: cv2.imdecode(np.frombuffer(v, np.uint8), cv2.IMREAD_COLOR).astype(float) for k, v in flat.items()}
+    before = {k: cv2.imdecode(np.frombuffer(v, np.uint8), cv2.IMREAD_COLOR).astype(float) for k, v in textured.items()}
+    for name in ("wall.png", "floor.png"):  # grain of 0.015 and 0.02 alone, against panels and tiles
+        assert decoded[name].std((0, 1)).max() < 7 < before[name].std((0, 1)).max()
+        np.testing.assert_allclose(decoded[name].mean((0, 1)), before[name].mean((0, 1)), atol=3)
+    (p, q, v, w), _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
+    (p2, q2, v2, w2), _ = mr.resolve_ic(plain, mr.Scene(plain, mesh), mesh)
+    assert all(np.array_equal(a, b) for a, b in ((p, p2), (q, q2), (v, v2), (w, w2)))
+    assert mc.fresh_folder(3, plain=True).name == "recordings_fresh3_plain"
 
 
 def test_crf_set_folders(mods):

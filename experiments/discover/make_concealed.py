@@ -23,7 +23,9 @@ encoded at H.264 quality C instead of 14, in recordings[_fresh<K>]_crf<C>/: how 
 moves the verdicts), ``--scale N`` (the set through a camera with N times the pixels along each
 side, the same lens and throws, in recordings[_fresh<K>]_x<N>/), ``--fps-scale N`` (the same
 throws filmed at N times the frame rate, each frame exposed for the same fraction of its interval,
-in recordings[_fresh<K>]_fps<N>/).
+in recordings[_fresh<K>]_fps<N>/), ``--plain`` (the same throws in front of a plain wall and floor
+with no cabinet or crate, little for the camera's registration to hold on to, in
+recordings[_fresh<K>]..._plain/).
 
 The "effect size" column is measured, not assumed: the same throw (same initial state) is
 simulated again without the effect (vacuum / no weight / the stated clock / a distortion-free
@@ -278,6 +280,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fps-scale", type=int, default=1, metavar="N",
                     help="the same throws filmed at N times the frame rate (the same seconds, the exposure the "
                          "same fraction of each frame's interval), in recordings[_fresh<K>]_fps<N>/")
+    ap.add_argument("--plain", action="store_true",
+                    help="the same throws in front of a plain wall and floor, no cabinet or crate "
+                         "(RecordingSpec.plain_scene), in recordings[_fresh<K>]..._plain/")
     ap.add_argument("--only", action="append", default=[], help="names (repeatable / a,b)")
     ap.add_argument("--list", action="store_true", help="list the specs and exit")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
@@ -314,7 +319,10 @@ def main(argv=None) -> int:
         specs = [(sharp_spec(s), what) for s, what in specs]
     if args.transfer is not None:
         specs = [(s.replace(transfer=args.transfer), what) for s, what in specs]
-    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(args.fresh, args.sharp, args.crf, args.transfer, args.scale, args.fps_scale))
+    if args.plain:
+        specs = [(s.replace(plain_scene=True), what) for s, what in specs]
+    out = Path(args.out) if args.out else (SHUTTER_OUT if args.shutter else fresh_folder(
+        args.fresh, args.sharp, args.crf, args.transfer, args.scale, args.fps_scale, args.plain))
     rows = []
     for spec, what in specs:
         summary = mr.make_recording(spec, out)

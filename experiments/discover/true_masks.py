@@ -34,16 +34,17 @@ HERE = Path(__file__).resolve().parent
 
 
 def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None, transfer: str | None = None,
-                 scale: int = 1, fps_scale: int = 1) -> Path:
+                 scale: int = 1, fps_scale: int = 1, plain: bool = False) -> Path:
     """Where concealed set ``fresh`` lives (0: the first set; ``sharp``: its copy without motion blur;
     ``crf``: its copy encoded at that H.264 quality; ``transfer``: its copy stored through that
     curve; ``scale``: its copy filmed with ``scale`` times the pixels along each side, ``_x<scale>``;
-    ``fps_scale``: its copy filmed at ``fps_scale`` times the frame rate, ``_fps<fps_scale>``).
+    ``fps_scale``: its copy filmed at ``fps_scale`` times the frame rate, ``_fps<fps_scale>``;
+    ``plain``: its copy in front of a plain wall and floor, ``_plain``).
     Here, not in make_concealed.py, so that concealed.py finds the sets without MuJoCo."""
     folder = HERE / (f"recordings_fresh{fresh}" if fresh else "recordings")
     return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
                             + (f"_{transfer}" if transfer else "") + (f"_x{scale}" if scale != 1 else "")
-                            + (f"_fps{fps_scale}" if fps_scale != 1 else ""))
+                            + (f"_fps{fps_scale}" if fps_scale != 1 else "") + ("_plain" if plain else ""))
 
 
 def recording_parts(folder: Path) -> tuple[dict, object, Camera]:

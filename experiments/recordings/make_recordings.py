@@ -118,6 +118,9 @@ class RecordingSpec:
     transfer: str = "linear"
     shadows: bool = False
     scene_seed: int = 0  # background texture
+    # a plain wall and floor (their textures' mean colours and fine grain alone) and no cabinet or
+    # crate: a background with little for a registration of the camera's motion to hold on to
+    plain_scene: bool = False
     # physics
     timestep: float = 1.0 / 4000.0
     fluid: bool = False  # MuJoCo's ellipsoid fluid model (off = vacuum)
@@ -441,8 +444,9 @@ def _noise_field(rng, h, w, scale):
     return f / max(f.max(), 1e-6)
 
 
-def _textures(scene_seed: int) -> dict:
-    """Procedural background textures (PNG bytes, MuJoCo asset dict)."""
+def _textures(scene_seed: int, plain: bool = False) -> dict:
+    """Procedural background textures (PNG bytes, MuJoCo asset dict); ``plain``: the wall and the
+    floor each of its mean colour and fine grain alone (:attr:`RecordingSpec.plain_scene`)."""
     rng = np.random.default_rng(1000 + scene_seed)
     out = {}
     # back wall: pale blue-grey plaster, a few posters / a window-like panel, fine grain
@@ -457,6 +461,8 @@ def _textures(scene_seed: int) -> dict:
         wall[y0:y0 + ph, x0:x0 + pw] = np.array(col, np.float32) * (0.75 + 0.35 * inner)
         wall[y0:y0 + ph, x0:x0 + 3] *= 0.5
         wall[y0:y0 + 3, x0:x0 + pw] *= 0.5
+    if plain:
+        wall = np.broadcast_to(wall.mean((0, 1)), wall.shape).copy()
     wall += rng.normal(scale=0.015, size=wall.shape).astype(np.float32)
     out["wall.png"] = wall
     # floor: grey / sand tiles with noise
@@ -465,7 +471,10 @@ def _textures(scene_seed: int) -> dict:
     chk = (((yy // 64) + (xx // 64)) % 2).astype(np.float32)[..., None]
     n = _noise_field(rng, h, w, 32)[..., None]
     floor = (chk * np.array([0.55, 0.52, 0.46]) + (1 - chk) * np.array([0.36, 0.37, 0.40]))
-    floor = floor * (0.85 + 0.25 * n) + rng.normal(scale=0.02, size=(h, w, 3))
+    floor = floor * (0.85 + 0.25 * n)
+    if plain:
+        floor = np.broadcast_to(floor.mean((0, 1)), floor.shape)
+    floor = floor + rng.normal(scale=0.02, size=(h, w, 3))
     out["floor.png"] = floor.astype(np.float32)
     # cabinet: dark green painted wood
     h, w = 256, 256
@@ -584,6 +593,11 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
     light_dir = -(fwd * 0.5 + left * 0.3 + np.array([0, 0, 1.0]))
     shadow = "true" if spec.shadows else "false"
     W, H, fovy = render_geometry(spec)
+    props = "" if spec.plain_scene else f"""<geom name="cabinet" type="box" size="0.3 0.5 0.6" pos="{_v(cab_c)}"
+          euler="0 0 {math.radians(yaw):.10g}" material="cabinet" density="0"/>
+    <geom name="crate" type="box" size="0.3 0.3 0.45" pos="{_v(cab2_c)}"
+          euler="0 0 {math.radians(yaw + 20):.10g}" material="cabinet"
+          rgba="0.9 0.75 0.6 1" density="0"/>"""
     # the buffer holds the supersampled true-mask render through a lens (LENS_MASK_SUPERSAMPLE)
     W, H = (W, H) if spec.distortion is None else (LENS_MASK_SUPERSAMPLE * W, LENS_MASK_SUPERSAMPLE * H)
     xml = f"""
@@ -623,11 +637,7 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
           material="floor" density="0"/>
     <geom name="wall" type="box" size="12 4 0.05" pos="{_v(wall_c)}"
           xyaxes="{_v(-left)} 0 0 1" material="wall" density="0"/>
-    <geom name="cabinet" type="box" size="0.3 0.5 0.6" pos="{_v(cab_c)}"
-          euler="0 0 {math.radians(yaw):.10g}" material="cabinet" density="0"/>
-    <geom name="crate" type="box" size="0.3 0.3 0.45" pos="{_v(cab2_c)}"
-          euler="0 0 {math.radians(yaw + 20):.10g}" material="cabinet"
-          rgba="0.9 0.75 0.6 1" density="0"/>
+    {props}
     <body name="object">
       <freejoint name="free"/>
       {geoms}
@@ -635,7 +645,7 @@ def build_model_xml(spec: RecordingSpec, mesh: trimesh.Trimesh, R_cw: np.ndarray
   </worldbody>
 </mujoco>
 """
-    return xml, _textures(spec.scene_seed), p_cam
+    return xml, _textures(spec.scene_seed, spec.plain_scene), p_cam
 
 
 def offscreen_gl() -> str:
