@@ -112,6 +112,12 @@ MOTION_MIN_CORRELATION = 0.8
 # *A background with little texture*)
 MOTION_SIGMA_FACTOR = 1.075
 MOTION_TILE_PX = 16
+# camera_motion passes with the object masked until one moves no frame's corner more than this against
+# the pass before, at most MOTION_MAX_PASSES in all: against a plain wall the first pass, the object in,
+# is dragged by its move, and the second cannot pull the map back along the wall's flat direction
+# (experiments/discover/HISTORY.md, *Passes until the maps settle*)
+MOTION_SETTLED_PX = 0.1
+MOTION_MAX_PASSES = 4
 MOTION_MARGIN_PX = 2  # a level registers the pixels its start maps at least this far inside the frame
 MOTION_POINTS = 40_000  # ... of at most this many valid pixels, the steepest in the reference
 # coverage_near_px="auto": the band of BAND_REFERENCE_STEPS steps chosen on a camera of this many pixels
@@ -805,6 +811,7 @@ class CameraMotion(NamedTuple):
             their inverse covariance (times the factor squared): about ``dof`` for a still
             camera (NaN where nothing was compared).
         dof: the parameters fitted per frame (5 with a camera, 3 without).
+        passes: how many passes ran (:func:`camera_motion`).
     """
 
     maps: np.ndarray
@@ -813,9 +820,10 @@ class CameraMotion(NamedTuple):
     sigma_px: np.ndarray
     chi2: np.ndarray
     dof: int
+    passes: int
 
 
-def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int = 2,
+def camera_motion(frames: np.ndarray, camera: Camera | None = None, max_passes: int = MOTION_MAX_PASSES,
                   min_correlation: float = MOTION_MIN_CORRELATION) -> CameraMotion:
     """How each frame's background moved: (T, 3, 3) maps of (T, H, W, 3) uint8 BGR ``frames``
     against the clip's background, so that a still camera's pixel ``p = (x, y, 1)`` lies at
@@ -832,14 +840,18 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
 
     Each pass moves every frame's grey levels back by the motion so far (:func:`stabilised`),
     takes their median as the reference, and registers each frame against it from its current
-    map (:func:`_register`); every pass but the last stops at the pyramid's second level, as it
-    only sharpens that median and finds the object. From the second pass on the object is left
+    map (:func:`_register`). The first pass stops at the pyramid's second level, as it only
+    sharpens that median and finds the object. From the second pass on the object is left
     out: pixels more than :data:`MOTION_OBJECT_DIFF` grey levels off the median, grown by
     :data:`MOTION_OBJECT_GROW_PX`, are masked, and in the frame they take the median's value
-    seen through the frame's map. The typical map is that of the median parameters. The
+    seen through the frame's map; passes run until one moves no frame's corner more than
+    :data:`MOTION_SETTLED_PX` against the one before, at most ``max_passes`` in all (against a
+    plain wall the object drags the first pass's map, and one more pass pulls it back). The
+    typical map is that of the median parameters. The
     pyramid's coarsest level sets how far a move can be found: a few pixels on a 160 x 120
     clip, more on larger frames (experiments/discover/HISTORY.md, *A camera that is not quite
-    still*, *Taking out a turn about the line of sight*, *A registration by the homography*)."""
+    still*, *Taking out a turn about the line of sight*, *A registration by the homography*,
+    *Passes until the maps settle*)."""
     height, width = frames.shape[1:3]
     if camera is None:
         k = np.array([[width, 0.0, (width - 1) / 2], [0.0, width, (height - 1) / 2], [0.0, 0.0, 1.0]])
@@ -850,7 +862,14 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
     params, correlation = np.zeros((len(grey), 5)), np.full(len(grey), np.nan)
     covariance = np.full((len(grey), len(active), len(active)), np.nan)
     grow = np.ones((2 * MOTION_OBJECT_GROW_PX + 1,) * 2, np.uint8)
-    for step in range(passes):
+    corners = _corners((height, width))
+
+    def settled_maps(params):  # each frame's map about the typical one's
+        maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(np.median(params, axis=0), k))
+        return maps / maps[:, 2:, 2:]
+
+    before = None
+    for step in range(max_passes):
         maps = np.stack([_turn_map(p, k) for p in params])
         moved = np.stack([_moved_back(g, m, cv2.INTER_LINEAR) for g, m in zip(grey, maps)])
         reference = np.median(moved, axis=0).astype(np.float32)
@@ -864,12 +883,15 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
                                            borderMode=cv2.BORDER_REPLICATE)
                 image = np.where(in_frame, seen, grey[t]).astype(np.float32)
             params[t], correlation[t], covariance[t] = _register(
-                reference, image, still, k, params[t], active, finest=1 if step < passes - 1 else 0,
+                reference, image, still, k, params[t], active, finest=1 if step == 0 else 0,
                 min_correlation=min_correlation)
+        after = settled_maps(params)
+        if step > 0 and np.abs(_mapped(after, corners) - _mapped(before, corners)).max() <= MOTION_SETTLED_PX:
+            break
+        before = after
     typical = np.median(params, axis=0)
-    maps = np.stack([_turn_map(p, k) for p in params]) @ np.linalg.inv(_turn_map(typical, k))
+    maps = after
     covariance = covariance * MOTION_SIGMA_FACTOR ** 2
-    corners = _corners((height, width))
     sigma = np.full((len(grey), 4), np.nan)
     chi2 = np.full(len(grey), np.nan)
     for t in range(len(grey)):
@@ -881,8 +903,7 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, passes: int 
                 chi2[t] = float(apart @ np.linalg.solve(covariance[t], apart))
             except np.linalg.LinAlgError:
                 pass
-    return CameraMotion(maps / maps[:, 2:, 2:], correlation, correlation >= min_correlation, sigma, chi2,
-                        len(active))
+    return CameraMotion(maps, correlation, correlation >= min_correlation, sigma, chi2, len(active), step + 1)
 
 
 # --------------------------------------------------------------------------------------

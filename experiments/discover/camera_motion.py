@@ -2,6 +2,7 @@
 
     python experiments/discover/camera_motion.py SET... [--out FILE] [--min-correlation C]
     python experiments/discover/camera_motion.py --summary [--out FILE] [--sigma-scale S]
+    python experiments/discover/camera_motion.py SET... --time-against-passes N [--repeats R]
 
 For every recording in each ``SET`` (folders beside this file, e.g. ``recordings``
 ``recordings_fresh1``, or any path holding recording folders), registered through its own
@@ -17,7 +18,10 @@ frame's background correlation with the clip's and whether it registered (``fram
 by default), every frame's worst-corner error against the shake's map, or the identity without
 one (``frame_corner_error_px``; each corner's, ``corner_errors_px``), each corner's standard
 error (``corner_sigma_px``) and each frame's chi-squared (``frame_chi2``, ``chi2_per_dof``;
-``torchfit.video.CameraMotion``). The concealed recordings are filmed from a
+``torchfit.video.CameraMotion``). ``--time-against-passes N`` times the registration instead,
+on one thread, against itself held to at most ``N`` passes (``max_passes``), the two
+alternated ``R`` times per recording in this one process, and prints each recording's median
+ratio and their median (the registration before the passes settled ran two). The concealed recordings are filmed from a
 still camera: their largest move is what ``SegmentationSettings.stabilise="auto"`` must stay
 under (:data:`torchfit.video.STILL_PX`) to leave them as they were. Writes
 ``results/camera_motion.json`` (or ``--out``).
@@ -78,7 +82,7 @@ def measure(folder: Path, min_correlation: float = MOTION_MIN_CORRELATION) -> di
     row["frame_registered"] = registered.tolist()
     row["corner_sigma_px"] = np.where(np.isfinite(found.sigma_px), found.sigma_px, -1.0).tolist()
     row["frame_chi2"] = [float(c) if np.isfinite(c) else None for c in found.chi2]
-    row["dof"] = found.dof
+    row["dof"], row["passes"] = found.dof, found.passes
     chi2 = found.chi2[np.isfinite(found.chi2)]
     row["chi2_per_dof"] = float(chi2.sum() / (found.dof * max(len(chi2), 1)))
     return row
@@ -117,12 +121,47 @@ def summary(result: dict, sigma_scale: float = 1.0) -> list[str]:
     return lines
 
 
+def timing(sets: list[str], passes: int, repeats: int) -> None:
+    """Print, per recording of ``sets``, the median ratio of the registration's time to its time
+    held to ``passes`` passes, the two alternated ``repeats`` times, and the median over them."""
+    import time
+
+    import torch
+
+    torch.set_num_threads(1)
+    import cv2
+
+    cv2.setNumThreads(1)
+    ratios = []
+    for name in sets:
+        folder = Path(name) if Path(name).is_absolute() else HERE / name
+        for recording in sorted(f for f in folder.iterdir() if (f / "video.mp4").exists()):
+            frames, _ = _read_video(recording / "video.mp4", 0, None)
+            camera = Camera.from_file(recording / "camera.json")
+            spent = {"default": [], "held": []}
+            for _ in range(repeats):
+                for kind, limit in (("default", None), ("held", passes)):
+                    start = time.perf_counter()
+                    found = camera_motion(frames, camera) if limit is None else camera_motion(frames, camera, max_passes=limit)
+                    spent[kind].append(time.perf_counter() - start)
+                    if kind == "default":
+                        ran = found.passes
+            ratio = float(np.median(spent["default"]) / np.median(spent["held"]))
+            ratios.append(ratio)
+            print(f"{name}/{recording.name}: {np.median(spent['default']):.2f} s ({ran} passes) against "
+                  f"{np.median(spent['held']):.2f} s held to {passes}: {ratio:.2f} times", flush=True)
+    print(f"median over {len(ratios)} recordings: {np.median(ratios):.2f} times ({min(ratios):.2f}-{max(ratios):.2f})")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sets", nargs="*", help="folders of recordings (beside this file or paths)")
     ap.add_argument("--out", type=Path, default=HERE / "results" / "camera_motion.json")
     ap.add_argument("--min-correlation", type=float, default=MOTION_MIN_CORRELATION,
                     help="the registration's floor (torchfit.video.MOTION_MIN_CORRELATION)")
+    ap.add_argument("--time-against-passes", type=int, default=None, metavar="N",
+                    help="time the registration against itself held to N passes (and stop)")
+    ap.add_argument("--repeats", type=int, default=3, help="with --time-against-passes: alternations per recording")
     ap.add_argument("--summary", action="store_true", help="print the table of --out's rows (summary) and stop")
     ap.add_argument("--sigma-scale", type=float, default=1.0,
                     help="with --summary: scale the stored standard errors by this (they hold MOTION_SIGMA_FACTOR's value then)")
@@ -130,6 +169,9 @@ def main(argv=None) -> None:
     result = json.loads(args.out.read_text()) if args.out.exists() else {}
     if args.summary:
         print("\n".join(summary(result, args.sigma_scale)))
+        return
+    if args.time_against_passes is not None:
+        timing(args.sets, args.time_against_passes, args.repeats)
         return
     for name in args.sets:
         folder = Path(name) if Path(name).is_absolute() else HERE / name
