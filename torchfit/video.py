@@ -107,9 +107,9 @@ MOTION_SCORE_DROP = 0.05  # a level whose steps lower the correlation more than 
 MOTION_MIN_CORRELATION = 0.8
 # camera_motion's standard errors: the Gauss-Newton's, its residuals taken as correlated within tiles of
 # MOTION_TILE_PX a side, times this: the RMS corner error over the RMS standard error of the 40 still
-# recordings of fresh concealed sets 1 and 2 (1.075; 0.83-1.16 a recording once scaled). On smoother
-# backgrounds the errors run up to 2.5 times the standard errors (experiments/discover/HISTORY.md,
-# *A background with little texture*)
+# recordings of fresh concealed sets 1 and 2 (1.075; 0.83-1.16 a recording once scaled). On shaken
+# and on plainer backgrounds the errors run 1.4-1.8 times the standard errors (experiments/discover/
+# HISTORY.md, *A background with little texture*, *Passes until the maps settle*)
 MOTION_SIGMA_FACTOR = 1.075
 MOTION_TILE_PX = 16
 # camera_motion passes with the object masked until one moves no frame's corner more than this against
@@ -700,10 +700,11 @@ def _register(reference: np.ndarray, image: np.ndarray, valid: np.ndarray | None
     """(5,) the parameters of :func:`_turn_map` (from ``params``, those listed in ``active``
     fitted) with ``image(W(p)) ~ reference(p)`` for (H, W) float32 images over the ``valid``
     pixels of ``reference`` (all when None), the correlation they reach on the last level run
-    (NaN when no level ran), and (K, K) the covariance of the K ``active`` parameters there,
-    ``s² (JᵀJ)⁻¹`` with ``s²`` the variance of the residual between the moved image (scaled by
-    ECC's gain to the reference) and the reference, the pixels taken as independent (NaN when
-    no level ran): ``params`` as given where the background does not register (that
+    (NaN when no level ran), and (K, K) the covariance of the K ``active`` parameters there
+    (NaN when no level ran): the sandwich ``(JᵀJ)⁻¹ (Σ_b g_b g_bᵀ) (JᵀJ)⁻¹``, ``g_b`` the sum of
+    ``J_i r_i`` over the points of a tile ``b`` of :data:`MOTION_TILE_PX` a side, ``r`` the
+    residual between the moved image (scaled by ECC's gain to the reference) and the reference;
+    ``params`` as given where the background does not register (that
     correlation is under ``min_correlation``, or not a number). ECC's Gauss-Newton step (Evangelidis and Psarakis, 2008: the
     correlation of the zero-mean images, so a change of exposure does not move the map), its
     Jacobian fixed per level from the reference's gradient, on the :data:`MOTION_POINTS`
@@ -828,9 +829,9 @@ def camera_motion(frames: np.ndarray, camera: Camera | None = None, max_passes: 
     """How each frame's background moved: (T, 3, 3) maps of (T, H, W, 3) uint8 BGR ``frames``
     against the clip's background, so that a still camera's pixel ``p = (x, y, 1)`` lies at
     ``H p`` (divided by its third entry) in the frame, taken about the frames' typical map (a
-    still camera reads the identity), with each frame's correlation and whether it reached
-    ``min_correlation`` (:class:`CameraMotion`; a frame that does not, on a background with too
-    little texture, keeps the map it had). Each map is a turn of the camera about its three axes seen
+    still camera reads the identity), with each frame's correlation, whether it reached
+    ``min_correlation`` (a frame that does not, on a background with too little texture, keeps
+    the map it had) and its standard errors (:class:`CameraMotion`). Each map is a turn of the camera about its three axes seen
     through its intrinsics, ``K R K^-1``, and a shift of the picture (:func:`_turn_map`): what a
     small turn of a camera held in the hand does to a far background, exact for any axis (a pan
     or tilt stretches the picture's edges), and a shift for what moves the picture as a whole.
