@@ -19,7 +19,7 @@ by default), every frame's worst-corner error against the shake's map, or the id
 one (``frame_corner_error_px``; each corner's, ``corner_errors_px``), each corner's standard
 error (``corner_sigma_px``) and each frame's chi-squared (``frame_chi2``, ``chi2_per_dof``;
 ``torchfit.video.CameraMotion``). ``--time-against-passes N`` times the registration instead,
-on one thread, against itself held to at most ``N`` passes (``max_passes``), the two
+OpenCV on one thread (set ``OMP_NUM_THREADS=1`` for numpy's), against itself held to at most ``N`` passes (``max_passes``), the two
 alternated ``R`` times per recording in this one process, and prints each recording's median
 ratio and their median (the registration before the passes settled ran two). The concealed recordings are filmed from a
 still camera: their largest move is what ``SegmentationSettings.stabilise="auto"`` must stay
@@ -126,12 +126,9 @@ def timing(sets: list[str], passes: int, repeats: int) -> None:
     held to ``passes`` passes, the two alternated ``repeats`` times, and the median over them."""
     import time
 
-    import torch
-
-    torch.set_num_threads(1)
     import cv2
 
-    cv2.setNumThreads(1)
+    cv2.setNumThreads(1)  # with OMP_NUM_THREADS=1 for numpy's, the registration runs on one thread
     ratios = []
     for name in sets:
         folder = Path(name) if Path(name).is_absolute() else HERE / name
