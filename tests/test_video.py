@@ -1132,6 +1132,21 @@ def test_frames_whose_background_does_not_register_are_said_and_left_out_of_a_mo
     assert kept.used[lost].all() and "would not be seen" in camera_motion_note(kept)
 
 
+def test_one_frame_with_a_large_change_does_not_teach_the_objects_colour(tmp_path):
+    """A still clip with a hand-sized patch (80 x 80 px) before the lens in frame 8 alone: that
+    frame's seed is 30 times the disc's, and learnt from, its colours would be taken for the
+    object's and the disc lost in other frames (12 of 20 once did). Every other frame keeps its
+    disc's area (193-196 px); frame 8 is not used."""
+    frames = _shaken_scene(np.tile(np.eye(3), (20, 1, 1)))
+    frames[8, 10:90, 20:100] = (90, 120, 60)
+    for t, frame in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"{t:03d}.png"), frame)
+    observation = load_observation(tmp_path, fps=60.0)
+    others = np.arange(20) != 8
+    assert observation.used[others].all() and not observation.used[8]
+    assert observation.areas[others].min() > 185 and observation.areas[others].max() < 205
+
+
 def test_frame_spans():
     from torchfit.video import _frame_spans
 

@@ -1408,9 +1408,10 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
     the camera's undistortion maps (:func:`_undistort_maps`), through which each frame's soft
     coverage is resampled (linearly: a coverage is a fraction, so a point takes the value where
     it was imaged) before its moments are taken; the masks stay as imaged. ``trusted``: (T,)
-    bool, the frames the object's colour is learnt from (all when None): a frame out of place
+    bool, the frames the object's colour may be learnt from (all when None): a frame out of place
     against the background (a camera move not measured) differs from it everywhere, and would
-    teach the background's colours as the object's."""
+    teach the background's colours as the object's; nor is it learnt from a frame whose seed
+    (its largest detected region) is more than ``settings.area_jump`` times the median seed."""
     background_bgr = _estimate_background(frames, settings)
     background = _luma_chroma(_decode(background_bgr, settings.transfer), settings.chroma_weight)
     frames = _luma_chroma(_decode(frames, settings.transfer), settings.chroma_weight)
@@ -1432,8 +1433,14 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
         if len(areas) > 1:
             second_frac[t] = areas[order[1]] / areas[order[0]] if areas[order[1]] >= settings.min_area else 0
 
-    # Albedo direction A of the object from its confident (eroded) pixels in all trusted frames.
-    taught = seeds if trusted is None else seeds & trusted[:, None, None]
+    # Albedo direction A of the object from its confident (eroded) pixels in all trusted frames,
+    # none from a frame whose seed is more than area_jump times the typical one: a hand before the
+    # lens or a flash in one frame would teach its colours as the object's
+    areas = seeds.sum(axis=(1, 2))
+    if (areas > 0).any():
+        oversized = areas > settings.area_jump * np.median(areas[areas > 0])
+        trusted = ~oversized if trusted is None else trusted & ~oversized
+    taught = seeds & trusted[:, None, None] if trusted is not None else seeds
     core = _morph(taught, "erosion", 1)
     if core.sum() < 10:
         core = taught
