@@ -328,9 +328,7 @@ class Observation:
     def camera_registered(self) -> np.ndarray | None:
         """(T,) bool, the frames whose background registered (:class:`CameraMotion`); None for
         mask input."""
-        if self.camera_correlation is None:
-            return None
-        return np.nan_to_num(self.camera_correlation, nan=-1.0) >= MOTION_MIN_CORRELATION
+        return None if self.camera_correlation is None else self.camera_correlation >= MOTION_MIN_CORRELATION
 
     @property
     def camera_moved_px(self) -> float:
@@ -1713,9 +1711,8 @@ def load_observation(
         if moved_back:
             unseen = unseen_pixels(motion, frames.shape[1:3])
             frames = _background_where_unseen(stabilised(frames, motion), unseen)
-        registered = np.nan_to_num(correlation, nan=-1.0) >= MOTION_MIN_CORRELATION
         segmented = _segment(frames, settings, _undistort_maps(camera) if distorted else None,
-                             registered if moved_back else None)
+                             found.registered if moved_back else None)
         masks, second_frac = segmented["masks"], segmented["second_frac"]
         cover_moments = segmented["coverage_moments"]
         background = cv2.cvtColor(
@@ -1739,9 +1736,8 @@ def load_observation(
         unseen = unseen_pixels(motion, masks.shape[1:3]) if unseen is None else unseen  # None: from the cache
         if distorted:
             unseen = _undistort(unseen, camera)
-    unmeasured = None
-    if moved_back:  # where the camera moved, a frame whose move is not measured has no still place
-        unmeasured = ~(np.nan_to_num(correlation, nan=-1.0) >= MOTION_MIN_CORRELATION)
+    # where the camera moved, a frame whose move is not measured has no still place
+    unmeasured = ~(correlation >= MOTION_MIN_CORRELATION) if moved_back else None  # NaN: not measured
     reasons = _flag(masks, second_frac, settings, unseen, unmeasured)
     if all(r == "no object" for r in reasons):
         raise ValueError(
