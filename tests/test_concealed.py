@@ -11,6 +11,7 @@ import importlib.util
 import json
 import math
 import sys
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
@@ -234,6 +235,36 @@ def test_fps_scaled_set_films_the_same_throws_at_twice_the_frame_rate(mods):
         assert unpinned.replace(fps=spec.fps, n_frames=spec.n_frames, fps_stated=spec.fps_stated) == spec
     assert mc.fps_scaled_spec(spec, 1) is spec
     assert mc.fresh_folder(6, fps_scale=2).name == "recordings_fresh6_fps2"
+
+
+def test_fps_scaled_set_at_half_the_frame_rate_keeps_every_other_frame(mods):
+    """--fps-scale 1/2: every other frame of the set's over the same flight (the last dropped when
+    the intervals are odd), each exposed for twice as long and blurred by sub-frames spaced in
+    time as the set's are; a wrong clock keeps its ratio; a factor that is neither N nor 1/N is
+    refused with its value named."""
+    mr, mc = mods
+    half = Fraction(1, 2)
+    for spec, _ in mc.concealed_specs(6):
+        if spec.name not in ("time_tshape", "magnus_ball"):  # a clock (45 frames), a spin (54)
+            continue
+        slow = mc.fps_scaled_spec(spec, half)
+        assert slow.fps == spec.fps / 2 and slow.n_frames == (spec.n_frames - 1) // 2 + 1
+        assert slow.exposure == spec.exposure and slow.blur_subframes == 2 * (spec.blur_subframes - 1) + 1
+        # the sub-frames' spacing in seconds: the exposure's span over its intervals
+        spacing = lambda s: s.exposure / s.fps / (s.blur_subframes - 1)  # noqa: E731
+        assert spacing(slow) == pytest.approx(spacing(spec))
+        assert (slow.n_frames - 1) / slow.fps <= (spec.n_frames - 1) / spec.fps
+        if spec.fps_stated is not None:
+            assert slow.fps / slow.fps_stated == pytest.approx(spec.fps / spec.fps_stated)
+        mesh = mr.make_mesh(spec.shape, spec.ball_radius)
+        ic, _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
+        ic2, _ = mr.resolve_ic(slow, mr.Scene(slow, mesh), mesh)
+        assert all(np.allclose(a, b, rtol=0, atol=1e-15) for a, b in zip(ic, ic2)), spec.name
+    assert mc.fresh_folder(6, fps_scale=half).name == "recordings_fresh6_fps1by2"
+    assert mc.fps_factor("1/2") == half and mc.fps_factor("3") == 3
+    for bad in ("3/2", "0", "-2", "x"):
+        with pytest.raises(ValueError, match=repr(bad)):
+            mc.fps_factor(bad)
 
 
 @pytest.mark.parametrize("codec, full_colour", [("h264_444", True), ("h264", False)])

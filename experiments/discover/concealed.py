@@ -50,10 +50,11 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
-from true_masks import fresh_folder, load_problem, recording_parts
+from true_masks import fps_factor, fresh_folder, load_problem, recording_parts
 
 import torchfit
 from torchfit.discover import without_weakest_block
@@ -841,7 +842,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         search_final: int | None = None, scale: int = 1, fps_scale: int = 1,
+         search_final: int | None = None, scale: int = 1, fps_scale: Fraction | int = 1,
          jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
          jump_neighbours: int = 0, jump_refined: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
@@ -914,9 +915,9 @@ if __name__ == "__main__":
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="the set filmed with N times the pixels along each side (make_concealed.py --scale N; "
                          "results/..._x<N>/)")
-    ap.add_argument("--fps-scale", type=int, default=1, metavar="N",
-                    help="the set filmed at N times the frame rate (make_concealed.py --fps-scale N; "
-                         "results/..._fps<N>/)")
+    ap.add_argument("--fps-scale", type=fps_factor, default=1, metavar="N|1/N",
+                    help="the set filmed at N (or 1/N) times the frame rate (make_concealed.py --fps-scale N; "
+                         "results/..._fps<N>/, ..._fps1by<N>/)")
     ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
                     help="the set stored through this camera curve (make_concealed.py --transfer T), segmented "
                          "with SegmentationSettings.transfer T (results/..._<T>/)")
@@ -1157,8 +1158,8 @@ if __name__ == "__main__":
     if args.scale < 1 or (args.scale != 1 and (args.shutter or args.shipped)):
         ap.error(f"--scale is a concealed set through a camera of N >= 1 times the pixels (not with --shutter or "
                  f"--shipped), got {args.scale}")
-    if args.fps_scale < 1 or (args.fps_scale != 1 and (args.shutter or args.shipped)):
-        ap.error(f"--fps-scale is a concealed set filmed at N >= 1 times the frame rate (not with --shutter or "
+    if args.fps_scale != 1 and (args.shutter or args.shipped):
+        ap.error(f"--fps-scale is a concealed set filmed at another frame rate (not with --shutter or "
                  f"--shipped), got {args.fps_scale}")
     if args.extra and (args.shutter or args.shipped):
         ap.error("--with adds a candidate to a concealed set: not with --shutter or --shipped")

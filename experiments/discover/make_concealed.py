@@ -23,7 +23,8 @@ encoded at H.264 quality C instead of 14, in recordings[_fresh<K>]_crf<C>/: how 
 moves the verdicts), ``--scale N`` (the set through a camera with N times the pixels along each
 side, the same lens and throws, in recordings[_fresh<K>]_x<N>/), ``--fps-scale N`` (the same
 throws filmed at N times the frame rate, each frame exposed for the same fraction of its interval,
-in recordings[_fresh<K>]_fps<N>/), ``--plain`` (the same throws in front of a plain wall and floor
+in recordings[_fresh<K>]_fps<N>/; ``--fps-scale 1/N``: one frame in N, each exposed N times as
+long, in ..._fps1by<N>/), ``--plain`` (the same throws in front of a plain wall and floor
 with no cabinet or crate, little for the camera's registration to hold on to, in
 recordings[_fresh<K>]..._plain/).
 
@@ -36,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +45,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "recordings"))
 import make_recordings as mr
-from true_masks import fresh_folder
+from true_masks import fps_factor, fresh_folder
 
 SHUTTER_OUT = HERE / "recordings_shutter"
 
@@ -193,21 +195,30 @@ def scaled_spec(spec: mr.RecordingSpec, scale: int) -> mr.RecordingSpec:
     return spec.replace(width=spec.width * scale, height=spec.height * scale, margin_px=spec.margin_px * scale)
 
 
-def fps_scaled_spec(spec: mr.RecordingSpec, factor: int) -> mr.RecordingSpec:
-    """The same recording filmed at ``factor`` times the frame rate: the same flight over the same
-    seconds, ``factor - 1`` frames between each two of the original (so its frames are every
-    ``factor``-th of these), each exposed for the same fraction of its now shorter interval, as a
-    camera with a fixed shutter angle does; a wrong clock is stated at ``factor`` times its rate.
+def fps_scaled_spec(spec: mr.RecordingSpec, factor: Fraction | int) -> mr.RecordingSpec:
+    """The same recording filmed at ``factor`` times the frame rate (a whole ``N`` or ``1/N``): the
+    same flight over the same seconds, each frame exposed for the same fraction of its interval, as
+    a camera with a fixed shutter angle does; a wrong clock is stated at ``factor`` times its rate.
+    At ``N`` times, ``N - 1`` frames lie between each two of the original (so its frames are every
+    ``N``-th of these); at ``1/N``, the frames are every ``N``-th of the original's (the last
+    dropped where they do not divide), each exposed ``N`` times as long and blurred by ``N`` times
+    as many sub-frames, so spaced in time as the set's are.
     The throw is the set's, drawn at the set's frame rate and pinned (``position`` ...
     ``angular_velocity``): the frames in between are only asked to stay in the image
     (``margin_px`` 0), since the set's margin, checked at more instants, would turn some throws
     away and draw others."""
+    factor = Fraction(factor)
     if factor == 1:
         return spec
     mesh = mr.make_mesh(spec.shape, spec.ball_radius)
     (p, q, v, w), _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
-    return spec.replace(fps=spec.fps * factor, n_frames=factor * (spec.n_frames - 1) + 1,
-                        fps_stated=None if spec.fps_stated is None else spec.fps_stated * factor,
+    if factor.denominator == 1:
+        n_frames, subframes = factor.numerator * (spec.n_frames - 1) + 1, spec.blur_subframes
+    else:
+        n_frames = (spec.n_frames - 1) // factor.denominator + 1
+        subframes = factor.denominator * (spec.blur_subframes - 1) + 1
+    return spec.replace(fps=float(spec.fps * factor), n_frames=n_frames, blur_subframes=subframes,
+                        fps_stated=None if spec.fps_stated is None else float(spec.fps_stated * factor),
                         position=tuple(map(float, p)), orientation_wxyz=tuple(map(float, q)),
                         velocity=tuple(map(float, v)), angular_velocity=tuple(map(float, w)), margin_px=0)
 
@@ -277,9 +288,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="a camera with N times the pixels along each side (the same lens and field of view, "
                          "the same throws), in recordings[_fresh<K>]_x<N>/")
-    ap.add_argument("--fps-scale", type=int, default=1, metavar="N",
-                    help="the same throws filmed at N times the frame rate (the same seconds, the exposure the "
-                         "same fraction of each frame's interval), in recordings[_fresh<K>]_fps<N>/")
+    ap.add_argument("--fps-scale", type=fps_factor, default=Fraction(1), metavar="N|1/N",
+                    help="the same throws filmed at N (or 1/N) times the frame rate (the same seconds, the exposure "
+                         "the same fraction of each frame's interval), in recordings[_fresh<K>]_fps<N>/ "
+                         "(_fps1by<N>/)")
     ap.add_argument("--plain", action="store_true",
                     help="the same throws in front of a plain wall and floor, no cabinet or crate "
                          "(RecordingSpec.plain_scene), in recordings[_fresh<K>]..._plain/")
@@ -296,8 +308,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"--crf needs an H.264 quality 0-51 (not with --shutter or --sharp), got {args.crf}")
     if args.scale < 1 or (args.scale != 1 and args.shutter):
         raise SystemExit(f"--scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.scale}")
-    if args.fps_scale < 1 or (args.fps_scale != 1 and args.shutter):
-        raise SystemExit(f"--fps-scale needs a whole factor >= 1 on a concealed set (not with --shutter), got {args.fps_scale}")
+    if args.fps_scale != 1 and args.shutter:
+        raise SystemExit(f"--fps-scale is a concealed set's frame rate: not with --shutter, got {args.fps_scale}")
     if args.transfer is not None and args.shutter:
         raise SystemExit("--transfer makes a concealed set: not with --shutter")
     specs = shutter_specs() if args.shutter else concealed_specs(args.fresh)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -33,18 +34,39 @@ from torchfit.video import SegmentationSettings, _boxes, load_observation, raw_m
 HERE = Path(__file__).resolve().parent
 
 
+def fps_factor(text: str) -> Fraction:
+    """``--fps-scale``'s value: a whole factor ``N`` >= 1 (N times the frame rate) or ``1/N`` (one
+    frame in N); anything else is refused with the value named."""
+    try:
+        factor = Fraction(text)
+    except (ValueError, ZeroDivisionError):
+        factor = None
+    if factor is None or factor <= 0 or (factor.numerator != 1 and factor.denominator != 1):
+        raise ValueError(f"a frame-rate factor is a whole N >= 1 or 1/N, got {text!r}")
+    return factor
+
+
+def fps_suffix(fps_scale: Fraction | int) -> str:
+    """The folder suffix of a set filmed at ``fps_scale`` times the frame rate: ``_fps2`` for twice,
+    ``_fps1by2`` for half, nothing for the set's own."""
+    fps_scale = Fraction(fps_scale)
+    if fps_scale == 1:
+        return ""
+    return f"_fps{fps_scale.numerator}" + (f"by{fps_scale.denominator}" if fps_scale.denominator != 1 else "")
+
+
 def fresh_folder(fresh: int, sharp: bool = False, crf: int | None = None, transfer: str | None = None,
-                 scale: int = 1, fps_scale: int = 1, plain: bool = False) -> Path:
+                 scale: int = 1, fps_scale: Fraction | int = 1, plain: bool = False) -> Path:
     """Where concealed set ``fresh`` lives (0: the first set; ``sharp``: its copy without motion blur;
     ``crf``: its copy encoded at that H.264 quality; ``transfer``: its copy stored through that
     curve; ``scale``: its copy filmed with ``scale`` times the pixels along each side, ``_x<scale>``;
-    ``fps_scale``: its copy filmed at ``fps_scale`` times the frame rate, ``_fps<fps_scale>``;
+    ``fps_scale``: its copy filmed at ``fps_scale`` times the frame rate, ``fps_suffix``;
     ``plain``: its copy in front of a plain wall and floor, ``_plain``).
     Here, not in make_concealed.py, so that concealed.py finds the sets without MuJoCo."""
     folder = HERE / (f"recordings_fresh{fresh}" if fresh else "recordings")
     return folder.with_name(folder.name + ("_sharp" if sharp else "") + (f"_crf{crf}" if crf is not None else "")
                             + (f"_{transfer}" if transfer else "") + (f"_x{scale}" if scale != 1 else "")
-                            + (f"_fps{fps_scale}" if fps_scale != 1 else "") + ("_plain" if plain else ""))
+                            + fps_suffix(fps_scale) + ("_plain" if plain else ""))
 
 
 def recording_parts(folder: Path) -> tuple[dict, object, Camera]:
