@@ -1442,6 +1442,18 @@ def test_cli_exposure_with_lens_distortion_models_the_blur_on_the_undistorted_co
         assert content["exposure_fitted"] and content["models"][0]["chi2_per_obs"] > 0
 
 
+def test_a_clip_far_from_60_fps_gets_a_line_saying_the_defaults_were_measured_there():
+    """discover's defaults were measured on 60 fps clips: a clip stated at 30 or 120 fps gets a
+    line saying so in its report; one within 1.25 times of 60 (50, 59.2, 72 fps) gets none."""
+    from torchfit.discover_video import frame_rate_lines
+
+    for fps in (60.0, 59.2, 50.0, 72.0):
+        assert frame_rate_lines(fps) == []
+    for fps in (30.0, 120.0, 25.0):
+        (line,) = frame_rate_lines(fps)
+        assert line.startswith(f"Frame rate: {fps:g} fps") and "measured at 60" in line
+
+
 def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():
     """A named clock reads as the true frame rate (factor times the stated fps), a named offset in
     mm; effects not named get no line."""

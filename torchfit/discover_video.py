@@ -2064,6 +2064,22 @@ def plain_unit_lines(verdict: Sequence[str], params: dict, stated_fps: float) ->
     return lines
 
 
+# discover's defaults were chosen and measured on 60 fps clips; a clip's stated rate more than this
+# factor away from it gets a line saying so (at 30 and 120 fps the concealed sets named fewer effects
+# and some wrongly: experiments/discover/README.md, *At half the frame rate*, *At twice the frame rate*)
+MEASURED_FPS, MEASURED_FPS_FACTOR = 60.0, 1.25
+
+
+def frame_rate_lines(stated_fps: float) -> list[str]:
+    """A line when the clip's ``stated_fps`` is more than :data:`MEASURED_FPS_FACTOR` times away
+    from the :data:`MEASURED_FPS` the defaults were measured at; none otherwise."""
+    if 1.0 / MEASURED_FPS_FACTOR <= stated_fps / MEASURED_FPS <= MEASURED_FPS_FACTOR:
+        return []
+    return [f"Frame rate: {stated_fps:.4g} fps, where discover's defaults were measured at {MEASURED_FPS:g}. On "
+            f"concealed recordings filmed at 30 and at 120 fps they named fewer hidden effects than at 60, and "
+            f"some wrongly (experiments/discover/README.md): read a name here with care."]
+
+
 def lens_shift_lines(verdict: Sequence[str], shift: dict | None) -> list[str]:
     """A named lens in pixels: the shift it gives the point seen where the object went farthest
     from the image centre (``shift``, the final model's :func:`lens_shift` entry), which the clip
@@ -2218,9 +2234,11 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
     shown = {**final.params, "magnus": {}} if lift else final.params  # its lift vector's line stands for it
     lines += verdict_lines(selection, shown, label, explained=not left)
     times = video.problem.times.detach().cpu().numpy()
-    lines += plain_unit_lines(selection.verdict, final.params, 1.0 / float(np.median(np.diff(times))))
+    stated_fps = 1.0 / float(np.median(np.diff(times)))
+    lines += plain_unit_lines(selection.verdict, final.params, stated_fps)
     lines += lift
     lines += lens_shift_lines(selection.verdict, final.payload.get("lens_shift"))
+    lines += frame_rate_lines(stated_fps)
     lines.append(f"Where the baseline misses: {located['summary'] or 'nothing above the noise'}.")
     if left:
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
