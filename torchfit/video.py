@@ -1421,24 +1421,24 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
 
     detected = _morph(magnitude > threshold, "opening", settings.morph_radius)
     seeds = np.zeros_like(detected)
+    seed_areas = np.zeros(len(frames), np.int64)
     second_frac = np.zeros(len(frames), np.float32)
     for t, mask in enumerate(detected):
         labels, areas = _components(mask)
         if len(areas) == 0 or areas.max() < settings.min_area:
             continue
         order = np.argsort(areas)[::-1]
-        seeds[t] = labels == 1 + order[0]
+        seeds[t], seed_areas[t] = labels == 1 + order[0], areas[order[0]]
         if len(areas) > 1:
             second_frac[t] = areas[order[1]] / areas[order[0]] if areas[order[1]] >= settings.min_area else 0
 
     # Albedo direction A of the object from its confident (eroded) pixels in all trusted frames,
     # none from a frame whose seed is more than area_jump times the typical one: a hand before the
     # lens or a flash in one frame would teach its colours as the object's
-    areas = seeds.sum(axis=(1, 2))
-    if (areas > 0).any():
-        oversized = areas > settings.area_jump * np.median(areas[areas > 0])
-        trusted = ~oversized if trusted is None else trusted & ~oversized
-    taught = seeds & trusted[:, None, None] if trusted is not None else seeds
+    trusted = np.ones(len(frames), bool) if trusted is None else trusted.copy()
+    if (seed_areas > 0).any():
+        trusted &= seed_areas <= settings.area_jump * np.median(seed_areas[seed_areas > 0])
+    taught = seeds & trusted[:, None, None]
     core = _morph(taught, "erosion", 1)
     if core.sum() < 10:
         core = taught

@@ -37,10 +37,17 @@ import numpy as np
 
 from shake import shake_maps, shake_motion
 from torchfit.camera import Camera
-from torchfit.video import (MOTION_MIN_CORRELATION, STILL_PX, _corners, _largest_move, _mapped, _motion_rows,
-                            _read_video, camera_motion)
+from torchfit.video import (MOTION_MAX_PASSES, MOTION_MIN_CORRELATION, STILL_PX, _corners, _largest_move, _mapped,
+                            _motion_rows, _read_video, camera_motion)
 
 HERE = Path(__file__).resolve().parent
+
+
+def recordings(name: str) -> list[Path]:
+    """The recording folders (those holding a video.mp4) of the set ``name``: a folder beside
+    this file or a path."""
+    folder = Path(name) if Path(name).is_absolute() else HERE / name
+    return sorted(f for f in folder.iterdir() if (f / "video.mp4").exists())
 
 
 def measure(folder: Path, min_correlation: float = MOTION_MIN_CORRELATION) -> dict:
@@ -131,15 +138,14 @@ def timing(sets: list[str], passes: int, repeats: int) -> None:
     cv2.setNumThreads(1)  # with OMP_NUM_THREADS=1 for numpy's, the registration runs on one thread
     ratios = []
     for name in sets:
-        folder = Path(name) if Path(name).is_absolute() else HERE / name
-        for recording in sorted(f for f in folder.iterdir() if (f / "video.mp4").exists()):
+        for recording in recordings(name):
             frames, _ = _read_video(recording / "video.mp4", 0, None)
             camera = Camera.from_file(recording / "camera.json")
             spent = {"default": [], "held": []}
             for _ in range(repeats):
-                for kind, limit in (("default", None), ("held", passes)):
+                for kind, limit in (("default", MOTION_MAX_PASSES), ("held", passes)):
                     start = time.perf_counter()
-                    found = camera_motion(frames, camera) if limit is None else camera_motion(frames, camera, max_passes=limit)
+                    found = camera_motion(frames, camera, max_passes=limit)
                     spent[kind].append(time.perf_counter() - start)
                     if kind == "default":
                         ran = found.passes
@@ -171,8 +177,7 @@ def main(argv=None) -> None:
         timing(args.sets, args.time_against_passes, args.repeats)
         return
     for name in args.sets:
-        folder = Path(name) if Path(name).is_absolute() else HERE / name
-        for recording in sorted(f for f in folder.iterdir() if (f / "video.mp4").exists()):
+        for recording in recordings(name):
             row = measure(recording, args.min_correlation)
             result[f"{name}/{recording.name}"] = row
             print(name, recording.name, " ".join(f"{k} {v:.3f}" for k, v in row.items() if not isinstance(v, list)),

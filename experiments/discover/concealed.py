@@ -842,7 +842,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          exposure_taps: int | None = None, coverage_band: str | None = None,
          shading_fit: str | None = None, speed_noise: bool = False, heldout_margin: float | None = None,
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
-         search_final: int | None = None, scale: int = 1, fps_scale: Fraction | int = 1,
+         search_final: int | None = None, scale: int = 1, fps_scale: Fraction = Fraction(1),
          jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
          jump_neighbours: int = 0, jump_refined: bool = False) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
@@ -915,7 +915,7 @@ if __name__ == "__main__":
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="the set filmed with N times the pixels along each side (make_concealed.py --scale N; "
                          "results/..._x<N>/)")
-    ap.add_argument("--fps-scale", type=fps_factor, default=1, metavar="N|1/N",
+    ap.add_argument("--fps-scale", type=fps_factor, default=Fraction(1), metavar="N|1/N",
                     help="the set filmed at N (or 1/N) times the frame rate (make_concealed.py --fps-scale N; "
                          "results/..._fps<N>/, ..._fps1by<N>/)")
     ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
