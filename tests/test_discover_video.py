@@ -1,6 +1,7 @@
 """Video discover: effects inside the silhouette fit (render, refine) and the selection on video."""
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -1425,6 +1426,29 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
     content = json.loads((tmp_path / "masks" / "discover.json").read_text())
     assert content["exposure"] is None and content["exposure_fitted"] is None and content["robust"] is None
     assert content["backcast"] is False  # the default (null) holds out the last quarter alone on the masks
+
+
+def test_cli_point_spread_is_checked_and_fitted_with_its_prior(tmp_path):
+    """``data.point_spread``: null gives none; ``[M, S]`` fits it on the blur's path from M with
+    that prior, recorded per model in discover.json; a value that is not two numbers with a
+    finite mean and a positive std is refused by value, and so is any with data.exposure=false."""
+    from torchfit.run import ConfigError, point_spread_setting, run
+    from torchfit.search import Exposure
+
+    exposure = Exposure(0.5, 0)
+    assert point_spread_setting(None, exposure) is None and point_spread_setting(False, exposure) is None
+    assert point_spread_setting([1, 1], exposure) == (1.0, 1.0)
+    assert point_spread_setting([0, math.inf], exposure) == (0.0, math.inf)
+    for bad in ([1], [1, 0], [math.nan, 1], [True, 1], "1 1", 1.0):
+        with pytest.raises(ConfigError, match=r"data.point_spread must be \[mean, std\].*got"):
+            point_spread_setting(bad, exposure)
+    with pytest.raises(ConfigError, match="data.exposure=false gives none"):
+        point_spread_setting([1, 1], None)
+    with pytest.raises(ConfigError, match="data.exposure=false gives none"):
+        run(_quick_discover("data.exposure=false", "data.point_spread=[1,1]"), tmp_path / "bad")
+    run(_quick_discover("data.point_spread=[1,1]"), tmp_path / "spread")
+    fitted = json.loads((tmp_path / "spread" / "discover.json").read_text())["point_spread_fitted"]
+    assert len(fitted) >= 1 and all(math.isfinite(f["value"]) and 0 < f["std"] <= 1 for f in fitted)
 
 
 def test_cli_exposure_with_lens_distortion_models_the_blur_on_the_undistorted_coverage(tmp_path):

@@ -11,6 +11,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -145,6 +146,24 @@ def backcast_setting(value, exposure: Exposure | None) -> bool:
         raise ConfigError(f"params.backcast must be true (the first quarter held out as well, predicted backward), "
                           f"false (the last quarter alone) or null for the path's default, got {value!r}")
     return value
+
+
+def point_spread_setting(value, exposure: Exposure | None) -> tuple[float, float] | None:
+    """``data.point_spread`` as :func:`torchfit.discover_video.discover_video`'s ``point_spread``:
+    null or false, none; ``[M, S]``, an isotropic variance (px^2) added to every silhouette's
+    coverage and fitted from ``M`` with a Gaussian prior of ``M`` ± ``S`` (``S`` .inf: no prior).
+    It is read from the frames' soft coverage, so it needs the blur's path (``exposure`` not None)."""
+    if value is None or value is False:
+        return None
+    pair = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else None
+    if (pair is None or len(pair) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in pair)
+            or not math.isfinite(pair[0]) or not pair[1] > 0):
+        raise ConfigError(f"data.point_spread must be [mean, std] in px^2 (a finite mean, a positive std; .inf for "
+                          f"no prior), e.g. [1, 1], or null for none, got {value!r}")
+    if exposure is None:
+        raise ConfigError("data.point_spread is read from the frames' soft coverage, and data.exposure=false gives "
+                          "none: leave data.exposure at auto or give the fraction")
+    return float(pair[0]), float(pair[1])
 
 
 def _transfer_line(observation: Observation, segmentation: SegmentationSettings) -> str:
@@ -525,6 +544,7 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     if fit_exposure is False and auto:
         raise ConfigError(f"data.fit_exposure=false holds a given exposure exact, and data.exposure=auto gives none "
                           f"(it starts at {AUTO_EXPOSURE:g} and fits it): give the fraction (exposure time x fps)")
+    point_spread = point_spread_setting(data.get("point_spread"), exposure)
     shape = build_shape(cfg.object)
     camera = build_camera(cfg.camera, _video_size(str(data.video)))
     segmentation = _segmentation_settings(data.segmentation, coverage=exposure is not None)
@@ -541,6 +561,9 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         ctx["progress"](note)
     if auto and observation.kind == "masks":  # the blur's path was measured on frames, not on given masks
         exposure = None
+        if point_spread is not None:
+            raise ConfigError("data.point_spread is read from the frames' soft coverage, which a folder of masks "
+                              "does not have: leave it null")
         ctx["progress"]("motion blur not modelled: a folder of masks has no soft coverage to read it from "
                         "(give data.exposure to compare the masks with the silhouette averaged over it)")
     elif auto:
@@ -556,8 +579,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     summary = discover_video(problem, observation, span, candidates=candidates, settings=rules,
                              search=_search_settings(cfg.search), iterations=iterations, edge_px=edge_px,
                              out_dir=out_dir, overlay=bool(cfg.outputs.overlay_video), truth=truth,
-                             exposure=exposure, fit_exposure=fit_exposure, speed_noise=speed_noise,
-                             robust=robust, backcast=backcast, jump_sigmas=jump_sigmas,
+                             exposure=exposure, fit_exposure=fit_exposure, point_spread=point_spread,
+                             speed_noise=speed_noise, robust=robust, backcast=backcast, jump_sigmas=jump_sigmas,
                              jump_one_at_a_time=jump_one_at_a_time, jump_neighbours=jump_neighbours,
                              jump_refined=jump_refined, progress=ctx["progress"])
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
