@@ -1431,7 +1431,8 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
 def test_cli_point_spread_is_checked_and_fitted_with_its_prior(tmp_path):
     """``data.point_spread``: null gives none; ``[M, S]`` fits it on the blur's path from M with
     that prior, recorded per model in discover.json; a value that is not two numbers with a
-    finite mean and a positive std is refused by value, and so is any with data.exposure=false."""
+    finite mean and a positive std is refused by value, and so is any with data.exposure=false.
+    On a clip stated at 30 fps the report's frame-rate line points to it unless it is fitted."""
     from torchfit.run import ConfigError, point_spread_setting, run
     from torchfit.search import Exposure
 
@@ -1446,7 +1447,12 @@ def test_cli_point_spread_is_checked_and_fitted_with_its_prior(tmp_path):
         point_spread_setting([1, 1], None)
     with pytest.raises(ConfigError, match="data.exposure=false gives none"):
         run(_quick_discover("data.exposure=false", "data.point_spread=[1,1]"), tmp_path / "bad")
-    run(_quick_discover("data.point_spread=[1,1]"), tmp_path / "spread")
+    # stated at 30 fps: the report's frame-rate line points to the spread only where it is not fitted
+    for name, extra in (("spread", ("data.point_spread=[1,1]",)), ("default", ())):
+        run(_quick_discover("data.fps=30", *extra), tmp_path / name)
+        content = json.loads((tmp_path / name / "discover.json").read_text())
+        (line,) = [line for line in content["report"] if line.startswith("Frame rate: 30 fps")]
+        assert ("data.point_spread=[1,1]" in line) == (name == "default")
     fitted = json.loads((tmp_path / "spread" / "discover.json").read_text())["point_spread_fitted"]
     assert len(fitted) >= 1 and all(math.isfinite(f["value"]) and 0 < f["std"] <= 1 for f in fitted)
 
@@ -1468,14 +1474,19 @@ def test_cli_exposure_with_lens_distortion_models_the_blur_on_the_undistorted_co
 
 def test_a_clip_far_from_60_fps_gets_a_line_saying_the_defaults_were_measured_there():
     """discover's defaults were measured on 60 fps clips: a clip stated at 30 or 120 fps gets a
-    line saying so in its report; one within 1.25 times of 60 (50, 59.2, 72 fps) gets none."""
+    line saying so in its report; one within 1.25 times of 60 (50, 59.2, 72 fps) gets none. Below
+    that range, where the blur is modelled without a point spread, the line points to
+    data.point_spread (measured at 30 fps); not above it (at 120 fps it failed its pilot)."""
     from torchfit.discover_video import frame_rate_lines
 
     for fps in (60.0, 59.2, 50.0, 72.0):
-        assert frame_rate_lines(fps) == []
+        assert frame_rate_lines(fps) == [] and frame_rate_lines(fps, spread_advice=True) == []
     for fps in (30.0, 120.0, 25.0):
         (line,) = frame_rate_lines(fps)
         assert line.startswith(f"Frame rate: {fps:g} fps") and "measured at 60" in line
+        assert "point_spread" not in line
+        (advised,) = frame_rate_lines(fps, spread_advice=True)
+        assert ("data.point_spread=[1,1]" in advised) == (fps < 60)
 
 
 def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():
