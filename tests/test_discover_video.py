@@ -1431,8 +1431,8 @@ def test_cli_exposure_is_checked_and_recorded(tmp_path):
 def test_cli_point_spread_is_checked_and_fitted_with_its_prior(tmp_path):
     """``data.point_spread``: null gives none; ``[M, S]`` fits it on the blur's path from M with
     that prior, recorded per model in discover.json; a value that is not two numbers with a
-    finite mean and a positive std is refused by value, and so is any with data.exposure=false.
-    On a clip stated at 30 fps the report's frame-rate line points to it unless it is fitted."""
+    finite mean and a positive std is refused by value, and so is any with data.exposure=false or
+    on a folder of masks. On a clip stated at 30 fps the report's frame-rate line points to it unless it is fitted."""
     from torchfit.run import ConfigError, point_spread_setting, run
     from torchfit.search import Exposure
 
@@ -1447,6 +1447,15 @@ def test_cli_point_spread_is_checked_and_fitted_with_its_prior(tmp_path):
         point_spread_setting([1, 1], None)
     with pytest.raises(ConfigError, match="data.exposure=false gives none"):
         run(_quick_discover("data.exposure=false", "data.point_spread=[1,1]"), tmp_path / "bad")
+    # a folder of masks has no soft coverage to read it from
+    import cv2
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for i, mask in enumerate(np.load(SMALL / "masks.npz")["masks"][:8]):
+        cv2.imwrite(str(masks / f"{i:03d}.png"), mask.astype(np.uint8) * 255)
+    with pytest.raises(ConfigError, match="which a folder of masks does not have"):
+        run(_quick_discover(f"data.video={masks}", "data.fps=60", "data.point_spread=[1,1]"), tmp_path / "bad_masks")
     # stated at 30 fps: the report's frame-rate line points to the spread only where it is not fitted
     for name, extra in (("spread", ("data.point_spread=[1,1]",)), ("default", ())):
         run(_quick_discover("data.fps=30", *extra), tmp_path / name)
