@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, replace
@@ -593,6 +594,21 @@ def _spin_seen_by_lift_alone(names) -> bool:
     return "magnus" in names and revealed(list(names)) == EFFECTS["magnus"].reveals
 
 
+def point_spread_prior(value) -> tuple[float, float]:
+    """A point spread's Gaussian prior ``(mean, std)`` in px^2 from any pair of real numbers
+    (a tuple, a list, a config's list), checked: a finite mean and a positive std (infinite: no
+    prior). Raises ValueError naming the value otherwise."""
+    try:
+        pair = () if isinstance(value, str) else tuple(value)
+    except TypeError:
+        pair = ()
+    if not (len(pair) == 2 and all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in pair)
+            and math.isfinite(pair[0]) and pair[1] > 0):
+        raise ValueError(f"point_spread must be (mean, std) px^2 with a finite mean and a positive std "
+                         f"(infinite: no prior), got {value}")
+    return float(pair[0]), float(pair[1])
+
+
 class VideoProblem:
     """Silhouettes of one recording as a :class:`torchfit.discover.SelectionProblem`.
 
@@ -715,10 +731,7 @@ class VideoProblem:
         if point_spread is not None and exposure is None:
             raise ValueError("point_spread needs an exposure (the point spread is fitted to the frames' soft "
                              "coverage, not to masks)")
-        if point_spread is not None and not (len(point_spread) == 2 and math.isfinite(point_spread[0])
-                                             and point_spread[1] > 0):
-            raise ValueError(f"point_spread must be (mean, std) px^2 with a finite mean and a positive std "
-                             f"(infinite: no prior), got {point_spread}")
+        point_spread = None if point_spread is None else point_spread_prior(point_spread)
         if not (isinstance(baseline_starts, int) and baseline_starts >= 1):
             raise ValueError(f"baseline_starts must be a whole number of the search's candidates, at least 1, "
                              f"got {baseline_starts!r}")
@@ -736,7 +749,7 @@ class VideoProblem:
         # fraction with no prior
         self.priors = {"edge": (0.0, EDGE_PRIOR_PX), "edge_shape": (0.0, EDGE_SHAPE_PRIOR_PX)}
         if point_spread is not None:
-            self.priors["point_spread"] = (float(point_spread[0]), float(point_spread[1]))
+            self.priors["point_spread"] = point_spread
         if fit_exposure:
             self.priors["exposure"] = (exposure.fraction, math.inf)
         # refits run in float64: finite differences of a converged fit need more than float32 resolves

@@ -11,7 +11,6 @@ import logging
 import math
 import os
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -153,17 +152,18 @@ def point_spread_setting(value, exposure: Exposure | None) -> tuple[float, float
     null or false, none; ``[M, S]``, an isotropic variance (px^2) added to every silhouette's
     coverage and fitted from ``M`` with a Gaussian prior of ``M`` ± ``S`` (``S`` .inf: no prior).
     It is read from the frames' soft coverage, so it needs the blur's path (``exposure`` not None)."""
+    from .discover_video import point_spread_prior
+
     if value is None or value is False:
         return None
-    pair = list(value) if isinstance(value, Sequence) and not isinstance(value, str) else None
-    if (pair is None or len(pair) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in pair)
-            or not math.isfinite(pair[0]) or not pair[1] > 0):
-        raise ConfigError(f"data.point_spread must be [mean, std] in px^2 (a finite mean, a positive std; .inf for "
-                          f"no prior), e.g. [1, 1], or null for none, got {value!r}")
+    try:
+        prior = point_spread_prior(value)
+    except ValueError as err:
+        raise ConfigError(f"data.point_spread must be [mean, std], e.g. [1, 1], or null for none: {err}") from None
     if exposure is None:
         raise ConfigError("data.point_spread is read from the frames' soft coverage, and data.exposure=false gives "
                           "none: leave data.exposure at auto or give the fraction")
-    return float(pair[0]), float(pair[1])
+    return prior
 
 
 def _transfer_line(observation: Observation, segmentation: SegmentationSettings) -> str:
