@@ -915,9 +915,9 @@ if __name__ == "__main__":
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="the set filmed with N times the pixels along each side (make_concealed.py --scale N; "
                          "results/..._x<N>/)")
-    ap.add_argument("--fps-scale", type=fps_factor, default=Fraction(1), metavar="N|1/N",
-                    help="the set filmed at N (or 1/N) times the frame rate (make_concealed.py --fps-scale N; "
-                         "results/..._fps<N>/, ..._fps1by<N>/)")
+    ap.add_argument("--fps-scale", type=fps_factor, default=Fraction(1), metavar="N|1/N|P/Q",
+                    help="the set filmed at this many times the frame rate (make_concealed.py --fps-scale F; "
+                         "results/..._fps<N>/, ..._fps1by<N>/, ..._fps<P>by<Q>/)")
     ap.add_argument("--transfer", choices=("srgb", "bt709"), default=None,
                     help="the set stored through this camera curve (make_concealed.py --transfer T), segmented "
                          "with SegmentationSettings.transfer T (results/..._<T>/)")

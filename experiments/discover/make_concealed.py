@@ -24,7 +24,8 @@ moves the verdicts), ``--scale N`` (the set through a camera with N times the pi
 side, the same lens and throws, in recordings[_fresh<K>]_x<N>/), ``--fps-scale N`` (the same
 throws filmed at N times the frame rate, each frame exposed for the same fraction of its interval,
 in recordings[_fresh<K>]_fps<N>/; ``--fps-scale 1/N``: one frame in N, each exposed N times as
-long, in ..._fps1by<N>/), ``--plain`` (the same throws in front of a plain wall and floor
+long, in ..._fps1by<N>/; ``--fps-scale 5/6``: 50 fps, frames between the set's, in
+..._fps5by6/), ``--plain`` (the same throws in front of a plain wall and floor
 with no cabinet or crate, little for the camera's registration to hold on to, in
 recordings[_fresh<K>]..._plain/).
 
@@ -36,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from fractions import Fraction
 from pathlib import Path
@@ -196,13 +198,15 @@ def scaled_spec(spec: mr.RecordingSpec, scale: int) -> mr.RecordingSpec:
 
 
 def fps_scaled_spec(spec: mr.RecordingSpec, factor: Fraction | int) -> mr.RecordingSpec:
-    """The same recording filmed at ``factor`` times the frame rate (a whole ``N`` or ``1/N``): the
-    same flight over the same seconds, each frame exposed for the same fraction of its interval, as
-    a camera with a fixed shutter angle does; a wrong clock is stated at ``factor`` times its rate.
-    At ``N`` times, ``N - 1`` frames lie between each two of the original (so its frames are every
-    ``N``-th of these); at ``1/N``, the frames are every ``N``-th of the original's (the last
-    dropped where they do not divide), each exposed ``N`` times as long and blurred by ``N`` times
-    as many sub-frames, so spaced in time as the set's are.
+    """The same recording filmed at ``factor`` times the frame rate (any positive fraction): the
+    same flight over the same seconds (the last frame dropped where the new interval does not
+    divide them), each frame exposed for the same fraction of its interval, as a camera with a
+    fixed shutter angle does; a wrong clock is stated at ``factor`` times its rate. At ``N`` times,
+    ``N - 1`` frames lie between each two of the original (so its frames are every ``N``-th of
+    these), blurred by as many sub-frames as the set's; at ``1/N``, the frames are every ``N``-th
+    of the original's; below 1 each frame is exposed ``1 / factor`` times as long and blurred by
+    sub-frames spaced in time about as the set's are (exactly at ``1/N``). At ``5/6`` (50 fps) and
+    ``5/12`` (25 fps) the frames fall between the set's.
     The throw is the set's, drawn at the set's frame rate and pinned (``position`` ...
     ``angular_velocity``): the frames in between are only asked to stay in the image
     (``margin_px`` 0), since the set's margin, checked at more instants, would turn some throws
@@ -212,11 +216,8 @@ def fps_scaled_spec(spec: mr.RecordingSpec, factor: Fraction | int) -> mr.Record
         return spec
     mesh = mr.make_mesh(spec.shape, spec.ball_radius)
     (p, q, v, w), _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
-    if factor.denominator == 1:
-        n_frames, subframes = factor.numerator * (spec.n_frames - 1) + 1, spec.blur_subframes
-    else:
-        n_frames = (spec.n_frames - 1) // factor.denominator + 1
-        subframes = factor.denominator * (spec.blur_subframes - 1) + 1
+    n_frames = math.floor((spec.n_frames - 1) * factor) + 1
+    subframes = spec.blur_subframes if factor >= 1 else round((spec.blur_subframes - 1) / factor) + 1
     return spec.replace(fps=float(spec.fps * factor), n_frames=n_frames, blur_subframes=subframes,
                         fps_stated=None if spec.fps_stated is None else float(spec.fps_stated * factor),
                         position=tuple(map(float, p)), orientation_wxyz=tuple(map(float, q)),
@@ -288,10 +289,10 @@ def main(argv=None) -> int:
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="a camera with N times the pixels along each side (the same lens and field of view, "
                          "the same throws), in recordings[_fresh<K>]_x<N>/")
-    ap.add_argument("--fps-scale", type=fps_factor, default=Fraction(1), metavar="N|1/N",
-                    help="the same throws filmed at N (or 1/N) times the frame rate (the same seconds, the exposure "
+    ap.add_argument("--fps-scale", type=fps_factor, default=Fraction(1), metavar="N|1/N|P/Q",
+                    help="the same throws filmed at this many times the frame rate (the same seconds, the exposure "
                          "the same fraction of each frame's interval), in recordings[_fresh<K>]_fps<N>/ "
-                         "(_fps1by<N>/)")
+                         "(_fps1by<N>/, _fps<P>by<Q>/; 5/6 is 50 fps)")
     ap.add_argument("--plain", action="store_true",
                     help="the same throws in front of a plain wall and floor, no cabinet or crate "
                          "(RecordingSpec.plain_scene), in recordings[_fresh<K>]..._plain/")

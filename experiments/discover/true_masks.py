@@ -35,20 +35,20 @@ HERE = Path(__file__).resolve().parent
 
 
 def fps_factor(text: str) -> Fraction:
-    """``--fps-scale``'s value: a whole factor ``N`` >= 1 (N times the frame rate) or ``1/N`` (one
-    frame in N); anything else is refused with the value named."""
+    """``--fps-scale``'s value: a positive fraction ``P/Q`` or whole ``N`` (``5/6``: 50 fps from the
+    sets' 60); anything else is refused with the value named."""
     try:
         factor = Fraction(text)
     except (ValueError, ZeroDivisionError):
         factor = None
-    if factor is None or factor <= 0 or (factor.numerator != 1 and factor.denominator != 1):
-        raise ValueError(f"a frame-rate factor is a whole N >= 1 or 1/N, got {text!r}")
+    if factor is None or factor <= 0:
+        raise ValueError(f"a frame-rate factor is a positive N, 1/N or P/Q, got {text!r}")
     return factor
 
 
 def fps_suffix(fps_scale: Fraction | int) -> str:
     """The folder suffix of a set filmed at ``fps_scale`` times the frame rate: ``_fps2`` for twice,
-    ``_fps1by2`` for half, nothing for the set's own."""
+    ``_fps1by2`` for half, ``_fps5by6`` for 5/6, nothing for the set's own."""
     fps_scale = Fraction(fps_scale)
     if fps_scale == 1:
         return ""
