@@ -206,26 +206,39 @@ def test_discover_reports_a_lens_by_its_shift_where_the_object_went():
     assert dv.lens_shift_lines(["time_scale"], lens) == [] and dv.lens_shift_lines(["lens_distortion"], None) == []
 
 
-def test_a_jump_test_that_takes_a_whole_held_out_part_stops_with_what_to_do(monkeypatch):
-    """When the jump test finds every frame of a held-out part to be a failed segmentation (a
-    clip whose end fails to segment), there is no prediction to judge an effect by: the fit
-    stops with an error that names the part, its frames and what to do, instead of judging a
-    held-out RMS of no frames."""
+@pytest.mark.parametrize("part", [0, 1])
+def test_a_held_out_part_the_jump_test_empties_moves_to_the_nearest_usable_frames(monkeypatch, part):
+    """When the jump test finds every frame of a held-out part (the end, 0; the start, 1) to be a
+    failed segmentation (a short clip at a low frame rate), the part is held out from as many of
+    the nearest usable frames instead: never a left-out frame, none of its own split's training
+    frames, the other part untouched; the report's left-out line says so, and discover.json's
+    heldout_moved names the part and its frames."""
     import torchfit.discover_video as dv
 
     problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
     video = dv.VideoProblem(problem, backcast=True)
-    held = video.splits[1][1]  # the start
+    before = [(train.copy(), held.copy()) for train, held in video.splits]
+    held = before[part][1]
     idx = np.flatnonzero(problem.used.cpu().numpy())
 
     def every_held_frame(channels, *args):
         return held[idx], {name: np.zeros(len(idx)) for name in channels}
 
     monkeypatch.setattr(dv, "jump_outliers", every_held_frame)
-    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
-    first, last = np.flatnonzero(held)[[0, -1]]
-    with pytest.raises(ValueError, match=f"held-out start, frames {first}-{last} .*params.jump_sigmas=null"):
-        video._set_noise(model)
+    video._set_noise(dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {}))
+    name = ("end", "start")[part]
+    usable = np.flatnonzero(video.problem.used.cpu().numpy())  # left-out frames no longer used
+    assert video.moved_parts == [name] and not held[usable].any()
+    train, moved = video.splits[part]
+    n = int(held.sum())
+    assert np.array_equal(np.flatnonzero(moved), usable[-n:] if part == 0 else usable[:n])
+    assert not (train & moved).any() and not (train & held).any() and not (moved & held).any()
+    other_train, other_held = video.splits[1 - part]
+    assert np.array_equal(other_held, before[1 - part][1]) and not (other_train & held).any()
+    assert video.moved_heldout() == {name: [int(i) for i in np.flatnonzero(moved)]}
+    (line,) = dv.left_out_lines({int(i): {} for i in np.flatnonzero(held)}, video.moved_heldout())
+    first, last = np.flatnonzero(moved)[[0, -1]]
+    assert f"Every frame of the held-out {name} was among them" in line and f"({first}-{last})" in line
 
 
 def test_prediction_spread_is_the_fits_covariance_carried_to_each_held_frames_channels():

@@ -764,7 +764,8 @@ class VideoProblem:
         if len(idx) - n_held < 8:
             raise ValueError(f"too few usable frames for discover: {len(idx)}, need at least {8 + n_held}")
         # (train, held) masks of each held-out part: the last frames, and with backcast the first
-        self.splits = []
+        self.splits, self.n_held = [], n_held
+        self.moved_parts: list[str] = []  # held-out parts moved off frames the jump test left out (_set_noise)
         for held_idx in (idx[-n_held:],) + ((idx[:n_held],) if backcast else ()):
             train = used.copy()
             train[held_idx] = False
@@ -1538,6 +1539,12 @@ class VideoProblem:
                                               for f in one.fields())), {}, self.start_nuisances()))
         return starts
 
+    def moved_heldout(self) -> dict[str, list[int]]:
+        """Each held-out part ("end", "start") whose every frame the jump test left out, to the
+        frames (indices of the span) it holds out instead: the last (first) usable ones."""
+        return {part: [int(i) for i in np.flatnonzero(held)]
+                for (_, held), part in zip(self.splits, ("end", "start")) if part in self.moved_parts}
+
     def outlier_jumps(self, frame: int) -> dict[str, float]:
         """The channels in which ``frame`` (of the span) jumps past ``jump_sigmas``, and by how
         many jitter standard deviations (:meth:`_set_noise`), largest first; empty for a frame
@@ -1575,7 +1582,10 @@ class VideoProblem:
         ``jump_neighbours`` frames on either side of each go with it. Outliers are left out of
         every model's criterion and listed in the report. Kept, such frames cost right names
         even under Huber's loss (experiments/discover/HISTORY.md,
-        forty-fifth session).
+        forty-fifth session). A held-out part whose every frame is left out is held out from as
+        many of the nearest usable frames instead (the last ones for the end, the first for the
+        start; :attr:`moved_parts`), so that there is a prediction to judge: at 25 fps the parts
+        hold 4-5 frames (HISTORY.md, fifty-fourth session).
         """
         with torch.no_grad():
             fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.nuisances))
@@ -1603,19 +1613,21 @@ class VideoProblem:
                 self.jump_scores[name] = np.full(len(used), np.nan)
                 self.jump_scores[name][idx] = score
         if outliers.any():
-            for (_, held), part in zip(self.splits, ("end", "start")):
-                if not (held & ~outliers).any():
-                    frames = np.flatnonzero(held)
-                    raise ValueError(
-                        f"the jump test (params.jump_sigmas) found every frame of the held-out {part}, "
-                        f"frames {frames[0]}-{frames[-1]} of the span, to be a failed segmentation: there is "
-                        f"nothing to judge a prediction on. Look at the clip's {part} (the contact sheet), cut "
-                        f"it off (data.start / data.stop), or turn the test off (params.jump_sigmas=null)")
+            kept = used & ~outliers
+            splits = []
+            for (train, held), part in zip(self.splits, ("end", "start")):
+                if not (held & ~outliers).any():  # the whole part failed: hold out the nearest usable frames
+                    frames = np.flatnonzero(kept)
+                    held = np.zeros_like(used)
+                    held[frames[-self.n_held:] if part == "end" else frames[:self.n_held]] = True
+                    train = kept & ~held
+                    self.moved_parts.append(part)
+                splits.append((train & ~outliers, held & ~outliers))
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
             self.problem.used = self.problem.used & keep
-            self.splits = [(train & ~outliers, held & ~outliers) for train, held in self.splits]
-            used = used & ~outliers
+            self.splits = splits
+            used = kept
         if self.speed_noise:  # floors that grow with the speed of the baseline's silhouette
             speed = np.linalg.norm(np.gradient(fitted[1][0].cpu().numpy(), axis=0), axis=1)
             self.frame_scale, self.speed_share = speed_scale(channels, used, speed)
@@ -1740,16 +1752,21 @@ def span_lines(first: int) -> list[str]:
             f"discover.json's frame lists (outlier_frames, criterion_frames, ...) use the video's numbers."]
 
 
-def left_out_lines(jumps: dict[int, dict[str, float]]) -> list[str]:
+def left_out_lines(jumps: dict[int, dict[str, float]], moved: dict[str, list[int]] | None = None) -> list[str]:
     """The report's line on the frames left out as segmentation failures: ``jumps`` maps each
     (a frame of the fitted span) to its channels' jumps in jitter sigmas
-    (:meth:`VideoProblem.outlier_jumps`; empty for a frame that went only as a jump's neighbour)."""
+    (:meth:`VideoProblem.outlier_jumps`; empty for a frame that went only as a jump's neighbour);
+    ``moved`` each held-out part ("end", "start") that held only such frames to the frames it holds
+    out instead (:meth:`VideoProblem.moved_heldout`)."""
     if not jumps:
         return []
     text = "; ".join(f"{frame}: " + (", ".join(f"{k} {v:.1f}" for k, v in channels.items()) or "beside a jump")
                      for frame, channels in jumps.items())
+    parts = "".join(f" Every frame of the held-out {part} was among them, so the {part} is held out from the "
+                    f"{'last' if part == 'end' else 'first'} {len(frames)} usable frames instead "
+                    f"({frames[0]}-{frames[-1]})." for part, frames in (moved or {}).items())
     return [f"Left out as segmentation failures (jumps off their neighbours, in jitter sigmas), frames of the "
-            f"fitted span: {text}."]
+            f"fitted span: {text}.{parts}"]
 
 
 def discover_video(problem: Problem, observation, span: np.ndarray, *, candidates: Sequence[str] = DEFAULT_CANDIDATES,
@@ -1884,6 +1901,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "heldout_frames": [int(span[i]) for i in np.flatnonzero(held_any)],
         "criterion_frames": [int(span[i]) for i in np.flatnonzero(used)],  # the units of unit_delta_chi2
         "outlier_frames": [int(span[i]) for i in video.outliers],
+        # a held-out part the jump test emptied, held out from the nearest usable frames instead
+        "heldout_moved": {part: [int(span[i]) for i in frames] for part, frames in video.moved_heldout().items()},
         # each left-out frame's channels past the threshold, in jitter standard deviations
         "outlier_jumps": {str(int(span[i])): video.outlier_jumps(i) for i in video.outliers},
         "settings": asdict(settings),
@@ -2263,7 +2282,7 @@ def _report_lines(selection, chain, located, video: VideoProblem, withheld_iou: 
         lines += _unexplained_lines(unexplained, bool(selection.verdict))
     lines += prediction_line(predicted)
     lines += size_mismatch_lines(mismatch, selection.verdict)
-    lines += left_out_lines({i: video.outlier_jumps(i) for i in video.outliers})
+    lines += left_out_lines({i: video.outlier_jumps(i) for i in video.outliers}, video.moved_heldout())
     lines += limits_line(selection, "clip", reach=physical_reach(video.problem.shape),
                          no_size={name: "a ball's lift is the vector C_L w, and the video does not see its spin"
                                   for name in traded})
