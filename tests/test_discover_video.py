@@ -1506,9 +1506,10 @@ def test_a_clip_far_from_60_fps_gets_a_line_saying_the_defaults_were_measured_th
     for fps in (30.0, 120.0, 25.0):
         (line,) = frame_rate_lines(fps)
         assert line.startswith(f"Frame rate: {fps:g} fps") and "measured at 60" in line
-        assert "point_spread" not in line
+        assert "point_spread" not in line and "at 25 fps 7 of 45" in line
         (advised,) = frame_rate_lines(fps, spread_advice=True)
         assert ("data.point_spread=[1,1]" in advised) == (fps < 60)
+        assert ("at 25 fps it named the same 7 of 45" in advised) == (fps < 60)
 
 
 def test_plain_unit_lines_give_the_frame_rate_in_fps_and_the_offset_in_mm():

@@ -2097,24 +2097,28 @@ def plain_unit_lines(verdict: Sequence[str], params: dict, stated_fps: float) ->
 
 
 # discover's defaults were chosen and measured on 60 fps clips; a clip's stated rate more than this
-# factor away from it gets a line saying so (at 30 and 120 fps the concealed sets named fewer effects
-# and some wrongly: experiments/discover/README.md, *At half the frame rate*, *At twice the frame rate*)
+# factor away from it gets a line saying so (at 25, 30 and 120 fps the concealed sets named fewer effects
+# and some wrongly; at 50 fps fewer, none wrongly: experiments/discover/README.md, *At half the frame
+# rate*, *At twice the frame rate*, *At 50 and 25 fps*)
 MEASURED_FPS, MEASURED_FPS_FACTOR = 60.0, 1.25
 
 
 def frame_rate_lines(stated_fps: float, spread_advice: bool = False) -> list[str]:
     """A line when the clip's ``stated_fps`` is more than :data:`MEASURED_FPS_FACTOR` times away
-    from the :data:`MEASURED_FPS` the defaults were measured at; none otherwise. Below that range,
-    with ``spread_advice`` (the blur modelled, no point spread fitted), it points to
-    ``data.point_spread``, which took two of the default's three wrong names away at 30 fps."""
+    from the :data:`MEASURED_FPS` the defaults were measured at; none otherwise (at 50 fps the
+    concealed sets named fewer, none wrongly). Below that range, with ``spread_advice`` (the blur
+    modelled, no point spread fitted), it points to ``data.point_spread``, which took two of the
+    default's three wrong names away at 30 fps and changed nothing at 25 fps."""
     if 1.0 / MEASURED_FPS_FACTOR <= stated_fps / MEASURED_FPS <= MEASURED_FPS_FACTOR:
         return []
     advice = (" At 30 fps, data.point_spread=[1,1] (a point spread fitted with a prior) named as many (17 of 45) "
-              "with one wrong name where the defaults named three: consider a second run with it."
+              "with one wrong name where the defaults named three; at 25 fps it named the same 7 of 45 with the "
+              "same three wrong names: consider a second run with it."
               if spread_advice and stated_fps < MEASURED_FPS else "")
     return [f"Frame rate: {stated_fps:.4g} fps, where discover's defaults were measured at {MEASURED_FPS:g}. On "
-            f"concealed recordings filmed at 30 and at 120 fps they named fewer hidden effects than at 60, and "
-            f"some wrongly (experiments/discover/README.md): read a name here with care.{advice}"]
+            f"concealed recordings filmed at 25, 30 and 120 fps they named fewer hidden effects than at 60, and "
+            f"some wrongly (at 25 fps 7 of 45, against 32 at 60; experiments/discover/README.md): read a name "
+            f"here with care.{advice}"]
 
 
 def lens_shift_lines(verdict: Sequence[str], shift: dict | None) -> list[str]:
