@@ -237,41 +237,15 @@ def test_fps_scaled_set_films_the_same_throws_at_twice_the_frame_rate(mods):
     assert mc.fresh_folder(6, fps_scale=2).name == "recordings_fresh6_fps2"
 
 
-def test_fps_scaled_set_at_half_the_frame_rate_keeps_every_other_frame(mods):
-    """--fps-scale 1/2: every other frame of the set's over the same flight (the last dropped when
-    the intervals are odd), each exposed for twice as long and blurred by sub-frames spaced in
-    time as the set's are; a wrong clock keeps its ratio; a factor that is not a positive number
-    is refused with its value named."""
-    mr, mc = mods
-    half = Fraction(1, 2)
-    for spec, _ in mc.concealed_specs(6):
-        if spec.name not in ("time_tshape", "magnus_ball"):  # a clock (45 frames), a spin (54)
-            continue
-        slow = mc.fps_scaled_spec(spec, half)
-        assert slow.fps == spec.fps / 2 and slow.n_frames == (spec.n_frames - 1) // 2 + 1
-        assert slow.exposure == spec.exposure and slow.blur_subframes == 2 * (spec.blur_subframes - 1) + 1
-        # the sub-frames' spacing in seconds: the exposure's span over its intervals
-        spacing = lambda s: s.exposure / s.fps / (s.blur_subframes - 1)  # noqa: E731
-        assert spacing(slow) == pytest.approx(spacing(spec))
-        assert (slow.n_frames - 1) / slow.fps <= (spec.n_frames - 1) / spec.fps
-        if spec.fps_stated is not None:
-            assert slow.fps / slow.fps_stated == pytest.approx(spec.fps / spec.fps_stated)
-        mesh = mr.make_mesh(spec.shape, spec.ball_radius)
-        ic, _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
-        ic2, _ = mr.resolve_ic(slow, mr.Scene(slow, mesh), mesh)
-        assert all(np.allclose(a, b, rtol=0, atol=1e-15) for a, b in zip(ic, ic2)), spec.name
-    assert mc.fresh_folder(6, fps_scale=half).name == "recordings_fresh6_fps1by2"
-    assert mc.fps_factor("1/2") == half and mc.fps_factor("3") == 3 and mc.fps_factor("5/6") == Fraction(5, 6)
-    for bad in ("0", "-2", "-5/6", "x", "1/0"):
-        with pytest.raises(ValueError, match=repr(bad)):
-            mc.fps_factor(bad)
-
-
-@pytest.mark.parametrize("factor, fps, subframes", [(Fraction(5, 6), 50.0, 6), (Fraction(5, 12), 25.0, 11)])
-def test_fps_scaled_set_at_50_and_25_fps_films_the_same_seconds(mods, factor, fps, subframes):
-    """--fps-scale 5/6 and 5/12: the set's throws at 50 and 25 fps, frames falling between the
-    set's, over the same seconds (the last where the new interval does not divide them), each
-    exposed for the same fraction of its interval with sub-frames spaced about as the set's;
+@pytest.mark.parametrize("factor, fps, subframes, folder", [
+    (Fraction(1, 2), 30.0, 9, "recordings_fresh6_fps1by2"),
+    (Fraction(5, 6), 50.0, 6, "recordings_fresh6_fps5by6"),
+    (Fraction(5, 12), 25.0, 11, "recordings_fresh6_fps5by12")])
+def test_fps_scaled_set_below_the_frame_rate_films_the_same_seconds(mods, factor, fps, subframes, folder):
+    """--fps-scale 1/2, 5/6, 5/12: the set's throws at 30, 50 and 25 fps over the same seconds
+    (the last frame dropped where the new interval does not divide them; at 1/2 every other frame
+    of the set's, at 5/6 and 5/12 frames between them), each exposed for the same fraction of its
+    interval, so for longer, with sub-frames spaced in time about as the set's (exactly at 1/2);
     a wrong clock keeps its ratio; the same throw, pinned."""
     mr, mc = mods
     for spec, _ in mc.concealed_specs(6):
@@ -281,15 +255,25 @@ def test_fps_scaled_set_at_50_and_25_fps_films_the_same_seconds(mods, factor, fp
         span = (spec.n_frames - 1) / spec.fps
         assert slow.fps == fps and slow.exposure == spec.exposure and slow.blur_subframes == subframes
         assert span - 1 / slow.fps < (slow.n_frames - 1) / slow.fps <= span
+        # the sub-frames' spacing in seconds: the exposure's span over its intervals
         spacing = lambda s: s.exposure / s.fps / (s.blur_subframes - 1)  # noqa: E731
-        assert spacing(slow) == pytest.approx(spacing(spec), rel=0.05)
+        assert spacing(slow) == pytest.approx(spacing(spec), rel=1e-12 if factor.numerator == 1 else 0.05)
         if spec.fps_stated is not None:
             assert slow.fps / slow.fps_stated == pytest.approx(spec.fps / spec.fps_stated)
         mesh = mr.make_mesh(spec.shape, spec.ball_radius)
         ic, _ = mr.resolve_ic(spec, mr.Scene(spec, mesh), mesh)
         ic2, _ = mr.resolve_ic(slow, mr.Scene(slow, mesh), mesh)
         assert all(np.allclose(a, b, rtol=0, atol=1e-15) for a, b in zip(ic, ic2)), spec.name
-    assert mc.fresh_folder(6, fps_scale=factor).name == f"recordings_fresh6_fps5by{factor.denominator}"
+    assert mc.fresh_folder(6, fps_scale=factor).name == folder
+
+
+def test_fps_factor_takes_a_positive_fraction_and_names_a_bad_one(mods):
+    """--fps-scale's value: a whole N, 1/N or P/Q above 0; anything else is refused with its value."""
+    _, mc = mods
+    assert mc.fps_factor("1/2") == Fraction(1, 2) and mc.fps_factor("3") == 3 and mc.fps_factor("5/6") == Fraction(5, 6)
+    for bad in ("0", "-2", "-5/6", "x", "1/0"):
+        with pytest.raises(ValueError, match=repr(bad)):
+            mc.fps_factor(bad)
 
 
 @pytest.mark.parametrize("codec, full_colour", [("h264_444", True), ("h264", False)])
