@@ -239,6 +239,13 @@ def test_a_held_out_part_the_jump_test_empties_moves_to_the_nearest_usable_frame
     (line,) = dv.left_out_lines({int(i): {} for i in np.flatnonzero(held)}, video.moved_heldout())
     first, last = np.flatnonzero(moved)[[0, -1]]
     assert f"Every frame of the held-out {name} was among them" in line and f"({first}-{last})" in line
+    # a jump test that leaves no more usable frames than a part holds: nothing to fit on, a clear stop
+    video = dv.VideoProblem(problem, backcast=True)
+    failed = np.ones(len(idx), dtype=bool)
+    failed[slice(None, n) if part == 1 else slice(-n, None)] = False  # the other part's n frames alone usable
+    monkeypatch.setattr(dv, "jump_outliers", lambda channels, *args: (failed, {k: np.zeros(len(idx)) for k in channels}))
+    with pytest.raises(ValueError, match=f"left {n} usable frames, too few to hold {n} out"):
+        video._set_noise(dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {}))
 
 
 def test_prediction_spread_is_the_fits_covariance_carried_to_each_held_frames_channels():

@@ -1620,6 +1620,10 @@ class VideoProblem:
                     frames = np.flatnonzero(kept)
                     held = np.zeros_like(used)
                     held[frames[-self.n_held:] if part == "end" else frames[:self.n_held]] = True
+                    if len(frames) <= self.n_held:  # nothing would be left to fit on
+                        raise ValueError(f"the jump test (params.jump_sigmas) left {len(frames)} usable frames, too "
+                                         f"few to hold {self.n_held} out and fit on the rest: look at the clip (the "
+                                         f"contact sheet) or turn the test off (params.jump_sigmas=null)")
                     train = kept & ~held
                     self.moved_parts.append(part)
                 splits.append((train & ~outliers, held & ~outliers))
