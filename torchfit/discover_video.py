@@ -609,6 +609,10 @@ def point_spread_prior(value) -> tuple[float, float]:
     return float(pair[0]), float(pair[1])
 
 
+# the held-out parts of :attr:`VideoProblem.splits`, in their order: the last frames, then (backcast) the first
+HELDOUT_PARTS = ("end", "start")
+
+
 class VideoProblem:
     """Silhouettes of one recording as a :class:`torchfit.discover.SelectionProblem`.
 
@@ -764,7 +768,7 @@ class VideoProblem:
         if len(idx) - n_held < 8:
             raise ValueError(f"too few usable frames for discover: {len(idx)}, need at least {8 + n_held}")
         # (train, held) masks of each held-out part: the last frames, and with backcast the first
-        self.splits, self.n_held = [], n_held
+        self.splits = []
         self.moved_parts: list[str] = []  # held-out parts moved off frames the jump test left out (_set_noise)
         for held_idx in (idx[-n_held:],) + ((idx[:n_held],) if backcast else ()):
             train = used.copy()
@@ -1543,7 +1547,7 @@ class VideoProblem:
         """Each held-out part ("end", "start") whose every frame the jump test left out, to the
         frames (indices of the span) it holds out instead: the last (first) usable ones."""
         return {part: [int(i) for i in np.flatnonzero(held)]
-                for (_, held), part in zip(self.splits, ("end", "start")) if part in self.moved_parts}
+                for (_, held), part in zip(self.splits, HELDOUT_PARTS) if part in self.moved_parts}
 
     def outlier_jumps(self, frame: int) -> dict[str, float]:
         """The channels in which ``frame`` (of the span) jumps past ``jump_sigmas``, and by how
@@ -1615,15 +1619,15 @@ class VideoProblem:
         if outliers.any():
             kept = used & ~outliers
             splits = []
-            for (train, held), part in zip(self.splits, ("end", "start")):
+            for (train, held), part in zip(self.splits, HELDOUT_PARTS):
                 if not (held & ~outliers).any():  # the whole part failed: hold out the nearest usable frames
-                    frames = np.flatnonzero(kept)
-                    held = np.zeros_like(used)
-                    held[frames[-self.n_held:] if part == "end" else frames[:self.n_held]] = True
-                    if len(frames) <= self.n_held:  # nothing would be left to fit on
+                    frames, n = np.flatnonzero(kept), int(held.sum())
+                    if len(frames) <= n:  # nothing would be left to fit on
                         raise ValueError(f"the jump test (params.jump_sigmas) left {len(frames)} usable frames, too "
-                                         f"few to hold {self.n_held} out and fit on the rest: look at the clip (the "
+                                         f"few to hold {n} out and fit on the rest: look at the clip (the "
                                          f"contact sheet) or turn the test off (params.jump_sigmas=null)")
+                    held = np.zeros_like(used)
+                    held[frames[-n:] if part == "end" else frames[:n]] = True
                     train = kept & ~held
                     self.moved_parts.append(part)
                 splits.append((train & ~outliers, held & ~outliers))
@@ -1857,10 +1861,10 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
 
     def predicted(fit_: ModelFit, spread_parts: list[dict]) -> list[dict]:  # each held-out part, as predicted
         out = []
-        for k, (channels, (_, held), spread) in enumerate(zip(fit_.payload["held_channels"], video.splits,
-                                                              spread_parts)):
-            part = locate_prediction(channels, held, times, video.noise, backward=k == 1, spread=spread)
-            out.append(part | {"part": "start" if k == 1 else "end", "frames": [int(span[i]) for i in part["frames"]],
+        for name, channels, (_, held), spread in zip(HELDOUT_PARTS, fit_.payload["held_channels"], video.splits,
+                                                     spread_parts):
+            part = locate_prediction(channels, held, times, video.noise, backward=name == "start", spread=spread)
+            out.append(part | {"part": name, "frames": [int(span[i]) for i in part["frames"]],
                                "count": int(held.sum())})
         return out
 
