@@ -244,8 +244,38 @@ def test_a_held_out_part_the_jump_test_empties_moves_to_the_nearest_usable_frame
     failed = np.ones(len(idx), dtype=bool)
     failed[slice(None, n) if part == 1 else slice(-n, None)] = False  # the other part's n frames alone usable
     monkeypatch.setattr(dv, "jump_outliers", lambda channels, *args: (failed, {k: np.zeros(len(idx)) for k in channels}))
-    with pytest.raises(ValueError, match=f"left {n} usable frames, too few to hold {n} out"):
+    # the end is moved first (onto the start's frames, or emptied and moved onto them) and leaves nothing
+    with pytest.raises(ValueError, match=f"left {n} usable frames; holding out the end \\({n} frames\\) "
+                                         f"leaves 0 to fit on"):
         video._set_noise(dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {}))
+
+
+@pytest.mark.parametrize("short", [False, True])
+def test_a_fit_rests_on_as_many_frames_after_the_jump_test_as_before_it(monkeypatch, short):
+    """The clip must leave ``MIN_FIT_FRAMES`` to fit on besides a held-out part before the jump test
+    (else discover stops at once), and so after it: frames left out of the middle, no part moved,
+    that leave a split's fit fewer stop discover with the counts; one frame fewer left out does not."""
+    import torchfit.discover_video as dv
+
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.04})
+    video = dv.VideoProblem(problem, backcast=True)
+    idx = np.flatnonzero(problem.used.cpu().numpy())
+    n = int(video.splits[0][1].sum())
+    assert len(idx) - n >= dv.MIN_FIT_FRAMES
+    failed = np.zeros(len(idx), dtype=bool)
+    # the middle frames, leaving each split MIN_FIT_FRAMES - 1 (short) or MIN_FIT_FRAMES to fit on
+    drop = len(idx) - n - dv.MIN_FIT_FRAMES + (1 if short else 0)
+    failed[n:n + drop] = True
+    monkeypatch.setattr(dv, "jump_outliers", lambda channels, *args: (failed, {k: np.zeros(len(idx)) for k in channels}))
+    model = dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {})
+    if short:
+        with pytest.raises(ValueError, match=f"leaves {dv.MIN_FIT_FRAMES - 1} to fit on, fewer than "
+                                             f"{dv.MIN_FIT_FRAMES}"):
+            video._set_noise(model)
+    else:
+        video._set_noise(model)
+        assert video.moved_parts == []
+        assert min(int(train.sum()) for train, _ in video.splits) == dv.MIN_FIT_FRAMES
 
 
 def test_prediction_spread_is_the_fits_covariance_carried_to_each_held_frames_channels():

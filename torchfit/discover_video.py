@@ -612,6 +612,9 @@ def point_spread_prior(value) -> tuple[float, float]:
 # the held-out parts of :attr:`VideoProblem.splits`, in their order: the last frames, then (backcast) the first
 HELDOUT_PARTS = ("end", "start")
 
+# the fewest frames a held-out split's fit may rest on, before the jump test and after it
+MIN_FIT_FRAMES = 8
+
 
 class VideoProblem:
     """Silhouettes of one recording as a :class:`torchfit.discover.SelectionProblem`.
@@ -765,8 +768,8 @@ class VideoProblem:
         used = problem.used.cpu().numpy().astype(bool)
         idx = np.flatnonzero(used)
         n_held = max(1, int(round(holdout * len(idx))))
-        if len(idx) - n_held < 8:
-            raise ValueError(f"too few usable frames for discover: {len(idx)}, need at least {8 + n_held}")
+        if len(idx) - n_held < MIN_FIT_FRAMES:
+            raise ValueError(f"too few usable frames for discover: {len(idx)}, need at least {MIN_FIT_FRAMES + n_held}")
         # (train, held) masks of each held-out part: the last frames, and with backcast the first
         self.splits = []
         self.moved_parts: list[str] = []  # held-out parts moved off frames the jump test left out (_set_noise)
@@ -1589,7 +1592,8 @@ class VideoProblem:
         forty-fifth session). A held-out part whose every frame is left out is held out from as
         many of the nearest usable frames instead (the last ones for the end, the first for the
         start; :attr:`moved_parts`), so that there is a prediction to judge: at 25 fps the parts
-        hold 4-5 frames (HISTORY.md, fifty-fourth session).
+        hold 4-5 frames (HISTORY.md, fifty-fourth session). A split's fit must rest on
+        ``MIN_FIT_FRAMES`` frames after the test as before it; otherwise this stops with the counts.
         """
         with torch.no_grad():
             fitted = self._fitted_moments(model.cands, self.effects(model.values), self._fraction(model.nuisances))
@@ -1622,15 +1626,18 @@ class VideoProblem:
             for (train, held), part in zip(self.splits, HELDOUT_PARTS):
                 if not (held & ~outliers).any():  # the whole part failed: hold out the nearest usable frames
                     frames, n = np.flatnonzero(kept), int(held.sum())
-                    if len(frames) <= n:  # nothing would be left to fit on
-                        raise ValueError(f"the jump test (params.jump_sigmas) left {len(frames)} usable frames, too "
-                                         f"few to hold {n} out and fit on the rest: look at the clip (the "
-                                         f"contact sheet) or turn the test off (params.jump_sigmas=null)")
                     held = np.zeros_like(used)
                     held[frames[-n:] if part == "end" else frames[:n]] = True
                     train = kept & ~held
                     self.moved_parts.append(part)
-                splits.append((train & ~outliers, held & ~outliers))
+                train, held = train & ~outliers, held & ~outliers
+                if train.sum() < MIN_FIT_FRAMES:  # the rule the clip met before the test, met after it
+                    raise ValueError(
+                        f"the jump test (params.jump_sigmas) left {int(kept.sum())} usable frames; holding out "
+                        f"the {part} ({int(held.sum())} frames) leaves {int(train.sum())} to fit on, fewer than "
+                        f"{MIN_FIT_FRAMES}: look at the clip (the contact sheet) or turn the test off "
+                        f"(params.jump_sigmas=null)")
+                splits.append((train, held))
             self.outliers = [int(i) for i in np.flatnonzero(outliers)]
             keep = torch.as_tensor(~outliers, device=self.problem.used.device)
             self.problem.used = self.problem.used & keep
