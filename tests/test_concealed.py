@@ -1009,6 +1009,29 @@ def test_blur_speed_bands_reach_as_far_as_named():
     assert swept.sum() == 25 + 4 * 7 and swept[10, 15] and not swept[10, 16] and not swept[14, 10]
 
 
+def test_contrast_oracle_replaces_the_lowest_contrast_share_of_the_ramp_first():
+    """``diagnose.py contrast-oracle``'s one frame: a disc's coverage read 0.5 short on the ramp's
+    right half, whose pixels are also the lowest in contrast. Replacing the lowest half of the
+    ramp by the exact coverage removes the whole centroid error; the same share drawn at random
+    removes about half of it; the ramp made exact removes it all; nothing replaced keeps it, a
+    shift to the left."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    diag = _load("diagnose", CONCEALED.parent / "diagnose.py")
+    v, u = np.mgrid[0:41, 0:41]
+    exact = np.clip(10.5 - np.hypot(u - 20, v - 20), 0.0, 1.0)
+    ramp = (exact > 0.02) & (exact < 0.98)
+    right = ramp & (u > 20)
+    cover = np.where(right, exact - 0.5 * exact, exact)
+    level = np.where(right, 5.0, 50.0) + 0.01 * u  # the right half lowest, in pixel order within it
+    assert 0.45 < right.sum() / ramp.sum() <= 0.5
+    errors = diag._oracle_errors(cover, exact, level, ramp, np.random.default_rng(0))
+    x, y = errors["as segmented"]
+    assert x < -0.05 and abs(y) < 1e-9
+    assert abs(errors["lowest 0.5"][0]) < 1e-9 and abs(errors["ramp exact"][0]) < 1e-9
+    assert 0.3 * abs(x) < abs(errors["random 0.5"][0]) < 0.7 * abs(x)
+    assert abs(errors["lowest 0.25"][0]) < abs(x) and abs(errors["lowest 0.1"][0]) < abs(x)
+
+
 def test_replay_selection_reruns_forward_selection_from_stored_scores():
     """Two rounds stored: the clock named, then nothing. The replay reproduces it; with the
     held-out test decided by the RMS rule the clock (held-out 10 % worse, 2.4 floors) is vetoed,

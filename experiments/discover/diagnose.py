@@ -32,6 +32,7 @@ scoreboard* and *What limits the video: four checks*.
     python experiments/discover/diagnose.py search SET NAME... SETTING=V...  # the search on default and on changed masks, ~2 min each
     python experiments/discover/diagnose.py exposure SET NAME... [SETTING=V...] [fractions=F1,F2,...]  # the baseline at other exposures than the recording's (default 0, 0.25, 0.5, 0.75, 1), ~2 min each
     python experiments/discover/diagnose.py regions SET NAME... [SETTING=V...]  # the coverage's centroid error by region (interior, ramp, outside), ~30 s each
+    python experiments/discover/diagnose.py contrast-oracle SET NAME... [SETTING=V...]  # that error with the low-contrast pixels made exact (an oracle's floor), ~30 s each
     python experiments/discover/diagnose.py lens-residual SET NAME... [SETTING=V...]  # a lens left after undistortion? ~20 s each
     python experiments/discover/diagnose.py regions-sources FRESH NAME...  # regions on the recording remade without each source of error, ~6 min each
     python experiments/discover/diagnose.py gravity-known SET NAME     # discover as by default with gravity held at the engine's, ~1-2 min
@@ -1507,6 +1508,112 @@ def regions(folder: Path, settings=None, samples: int = 4) -> dict:
     return out
 
 
+# contrast-oracle: the shares of a frame's ramp pixels (the lowest in contrast, or drawn at random)
+# replaced by the exact coverage
+ORACLE_SHARES = (0.1, 0.25, 0.5)
+
+
+def _oracle_errors(cover: np.ndarray, exact: np.ndarray, level: np.ndarray, ramp: np.ndarray,
+                   rng: np.random.Generator) -> dict:
+    """:func:`contrast_oracle`'s figures for one frame's (h, w) crop: ``cover`` the coverage as the
+    moments take it, ``exact`` the exact coverage, ``level`` each pixel's contrast and ``ramp`` (bool)
+    the pixels that may be replaced. Label -> the (x, y) centroid error (px, against the exact
+    coverage's centroid, divided by its area) with no pixel replaced (``as segmented``), with each
+    share of the ramp replaced by the exact coverage, lowest in ``level`` first (``lowest q``; ties
+    in pixel order) or drawn at random (``random q``), and with all of it (``ramp exact``)."""
+    h, w = exact.shape
+    area = exact.sum()
+    v, u = np.mgrid[0:h, 0:w]
+    cu, cv = (exact * u).sum() / area, (exact * v).sum() / area
+
+    def centroid_error(replaced: np.ndarray) -> tuple[float, float]:
+        e = np.where(replaced.reshape(h, w), exact, cover) - exact
+        return float((e * (u - cu)).sum() / area), float((e * (v - cv)).sum() / area)
+
+    order = np.flatnonzero(ramp.ravel())
+    by_contrast = order[np.argsort(level.ravel()[order], kind="stable")]
+    drawn = rng.permutation(order)
+    out = {"as segmented": centroid_error(np.zeros(ramp.size, dtype=bool))}
+    for kind, ranked in (("lowest", by_contrast), ("random", drawn)):
+        for q in ORACLE_SHARES:
+            replaced = np.zeros(ramp.size, dtype=bool)
+            replaced[ranked[:int(round(q * len(order)))]] = True
+            out[f"{kind} {q:g}"] = centroid_error(replaced)
+    out["ramp exact"] = centroid_error(ramp.ravel())
+    return out
+
+
+def contrast_oracle(folder: Path, settings=None, samples: int = 4, seed: int = 0) -> dict:
+    """Is the coverage's centroid error where the colour contrast is low, and how much would a
+    reading of those pixels remove?
+
+    Per frame where the mask is whole (as :func:`regions`), the centroid error of the segmentation's
+    coverage (clipped, within its band) against the exact coverage; then the same with a share
+    (:data:`ORACLE_SHARES`) of the frame's ramp pixels (exact coverage 0.02-0.98, within the band)
+    replaced by the exact coverage: the share lowest in local object-background contrast ``|F - B|``
+    (the segmentation's own :func:`torchfit.video._local_contrast`, grey levels in luma/chroma;
+    0 where the shading has no support), and the same share drawn at random. The first is an
+    oracle's floor for any method that reads low-contrast pixels better (weights them by their
+    contrast, or fills them from a model); if it beats the random draw by little, the error is not
+    where the contrast is low. ``ramp exact``: every ramp pixel replaced. Centroid figures are
+    :func:`_stats` of (T,) px; ``contrast`` the median ``|F - B|`` at each share's cut.
+    Pinhole recordings only."""
+    import torchfit.video as video
+    from torchfit.render import RenderMesh
+
+    settings = settings or SegmentationSettings()
+    truth, shape, camera = recording_parts(folder)
+    if camera.distorted:
+        raise SystemExit("a lens recording: the exact coverage here takes no distortion")
+    contrasts = []
+    original = video._local_contrast
+
+    def watched(*args, **kwargs):
+        contrast, support = original(*args, **kwargs)
+        contrasts.append(np.sqrt((contrast**2).sum(-1)) * support)
+        return contrast, support
+
+    video._local_contrast = watched
+    try:
+        masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
+    finally:
+        video._local_contrast = original
+    if len(contrasts) != len(kept):
+        raise RuntimeError(f"{folder.name}: {len(contrasts)} contrasts for {len(kept)} coverages")
+    rng = np.random.default_rng(seed)
+    sub_position, sub_rotation = _subframe_poses(truth)
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
+    steps = settings.band_steps(*masks.shape[1:])
+    labels = (["as segmented"] + [f"lowest {q:g}" for q in ORACLE_SHARES] + [f"random {q:g}" for q in ORACLE_SHARES]
+              + ["ramp exact"])
+    errors = {label: [] for label in labels}
+    cuts = {q: [] for q in ORACLE_SHARES}
+    for t in np.flatnonzero(_whole(masks)):
+        rows, cols = np.nonzero(masks[t])
+        pad = steps + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
+        y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
+        y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
+        h, w = y1 - y0, x1 - x0
+        exact = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, h, w, samples)
+        band = video.motion_band(masks[t], steps, velocity[t])[y0:y1, x0:x1]
+        cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
+        level = contrasts[t][y0:y1, x0:x1]
+        ramp = band & (exact > REGION_EDGES[0]) & (exact < REGION_EDGES[1])
+        for label, error in _oracle_errors(cover, exact, level, ramp, rng).items():
+            errors[label].append(error)
+        order = np.sort(level[ramp])
+        for q in ORACLE_SHARES:
+            if round(q * len(order)):
+                cuts[q].append(float(order[int(round(q * len(order))) - 1]))
+    out = {"frames": len(errors["as segmented"])}
+    for label, rows in errors.items():
+        rows = np.array(rows)
+        out[label] = {"centroid_x": _stats(rows[:, 0]), "centroid_y": _stats(rows[:, 1])}
+    out["contrast"] = {f"lowest {q:g}": float(np.median(c)) if c else None for q, c in cuts.items()}
+    return out
+
+
 def gravity_known(folder: Path) -> dict:
     """Would knowing gravity's direction let the video see a drag or a lift? discover as by default
     (``concealed.py --albedo-passes 1 --exposure --exposure-fraction 0.5 --exposure-taps 0
@@ -1765,7 +1872,8 @@ def main(argv: list[str]) -> None:
                 "blur-estimate": blur_estimate, "blur-speed": blur_speed, "exact-coverage": exact_coverage, "area": area,
                 "spread-stall": spread_stall, "baseline-starts": baseline_starts,
                 "shape-frames": shape_frames, "error-speed": error_speed, "regions": regions,
-                "lens-residual": lens_residual, "gravity-known": gravity_known, "jump-scores": jump_scores,
+                "contrast-oracle": contrast_oracle, "lens-residual": lens_residual, "gravity-known": gravity_known,
+                "jump-scores": jump_scores,
                 "resegment": resegment}
     if len(argv) < 3 or argv[0] not in commands:
         sys.exit(__doc__)
@@ -1790,12 +1898,14 @@ def main(argv: list[str]) -> None:
     argv = [a for a in argv if a not in fractions + parts + held + robust + backcast + exact]
     several = command in ("segmentation", "coverage", "blur", "stretch", "contrast", "clip", "search", "exposure",
                           "blur-estimate", "blur-speed", "exact-coverage", "area", "spread-stall", "baseline-starts",
-                          "shape-frames", "error-speed", "regions", "lens-residual", "jump-scores", "resegment")
+                          "shape-frames", "error-speed", "regions", "contrast-oracle", "lens-residual", "jump-scores",
+                          "resegment")
     # the commands that take segmentation settings, SETTING=V after the names (e.g. albedo_passes=1)
     changes = (_setting_args(argv[2:]) if command in ("blur", "search", "exposure", "blur-estimate", "blur-speed",
                                                       "exact-coverage", "area", "spread-stall",
                                                       "baseline-starts", "heldout-blur", "shape-frames",
-                                                      "error-speed", "regions", "lens-residual") else {})
+                                                      "error-speed", "regions", "contrast-oracle",
+                                                      "lens-residual") else {})
     if command == "heldout-blur" and changes:  # the blurred path's albedo pass, unless set
         changes = {"albedo_passes": 1} | changes
     if command == "search" and not changes:
