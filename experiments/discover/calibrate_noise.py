@@ -4,6 +4,7 @@
     python experiments/discover/calibrate_noise.py --true-masks [names...]  # the engine's exact masks
     python experiments/discover/calibrate_noise.py --albedo-passes N [names...]  # SegmentationSettings.albedo_passes N
     python experiments/discover/calibrate_noise.py --exposure [names...]  # the data.exposure path
+    python experiments/discover/calibrate_noise.py --exposure --scale 2 [names...]  # through a camera of twice the pixels
 
 For each shipped MuJoCo recording (nothing missing: the model is exact up to segmentation):
 
@@ -29,12 +30,19 @@ says otherwise), the frames' soft coverage against the silhouette averaged over 
 own exposure (``truth.json``'s render), its fraction fitted. The edge term's grid goes lower
 (``EXPOSURE_EDGES``). Writes results/noise_calibration_albedo1_exposure_fitted.json. The
 autocorrelation is still the masks' against the true masks.
+
+With ``--scale N`` the shipped recordings' throws are made again through a camera with N times the
+pixels along each side, the same field of view (``make_concealed.scaled_spec``, as the concealed
+sets' ``--scale``), in recordings_shipped_x<N>/ beside this script (made once, then reused), and
+calibrated there; the results file gets ``_x<N>``. The segmentation takes its defaults for that
+camera (``coverage_near_px=auto``: 8 steps at 1280 x 960).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -44,14 +52,37 @@ from true_masks import load_problem
 
 from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
 from torchfit.losses import mask_moments
-from torchfit.paper._recording import load_recording
+from torchfit.paper._recording import Recording, load_recording
+from torchfit.shape import Camera, load_shape
 from torchfit.residuals import CHANNELS, channel_values, noise_floor, systematic_floor
 from torchfit.video import SegmentationSettings
 
 EDGES = (0.5, 0.4, 0.3, 0.25, 0.2, 0.15, 0.1)
 EXACT_EDGES = (0.1, 0.07, 0.05, 0.04, 0.03, 0.02, 0.01, 0.0)
-EXPOSURE_EDGES = (0.2, 0.15, 0.1, 0.07, 0.05, 0.04, 0.03)
-RESULTS = Path(__file__).resolve().parent / "results"
+EXPOSURE_EDGES = (0.4, 0.3, 0.25, 0.2, 0.15, 0.1, 0.07, 0.05, 0.04, 0.03)
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+
+
+def scaled_recording(name: str, scale: int) -> Recording:
+    """The shipped recording ``name``'s throw through a camera with ``scale`` times the pixels along
+    each side (``make_concealed.scaled_spec``), made in ``recordings_shipped_x<scale>/`` the first
+    time and read from there after."""
+    folder = HERE / f"recordings_shipped_x{scale}" / name
+    if not (folder / "truth.json").exists():
+        sys.path.insert(0, str(HERE.parent / "recordings"))
+        import make_concealed
+        import make_recordings as mr
+
+        specs = {spec.name: spec for spec in mr.shipped_specs()}
+        if name not in specs:
+            raise SystemExit(f"no shipped recording {name!r}; choose from {sorted(specs)}")
+        mr.offscreen_gl()
+        mr.make_recording(make_concealed.scaled_spec(specs[name], scale), folder.parent)
+    truth = json.loads((folder / "truth.json").read_text())
+    shape = load_shape(str(folder / "mesh.obj"), density=float(truth["object"]["density"]))
+    masks = np.load(folder / "masks.npz")["masks"].astype(bool)
+    return Recording(name, folder, shape, Camera.from_file(folder / "camera.json"), truth, masks)
 
 
 def correlation(rec, observation, lags=(1, 2)) -> dict:
@@ -68,8 +99,8 @@ def correlation(rec, observation, lags=(1, 2)) -> dict:
 
 
 def calibrate(name: str, true_masks: bool = False, settings: SegmentationSettings | None = None,
-              exposure: bool = False) -> dict:
-    rec = load_recording(name)
+              exposure: bool = False, scale: int = 1) -> dict:
+    rec = load_recording(name) if scale == 1 else scaled_recording(name, scale)
     observation, problem, span = load_problem(rec.folder, rec.shape, rec.camera, true_masks, settings)
     blur = {}
     if exposure:  # the data.exposure path: the soft coverage against the recording's exposure, fitted
@@ -103,7 +134,11 @@ if __name__ == "__main__":
     ap.add_argument("--exposure", action="store_true",
                     help="the data.exposure path: the soft coverage against the recording's exposure, fitted "
                          "(with the albedo pass unless --albedo-passes says otherwise)")
+    ap.add_argument("--scale", type=int, default=1, metavar="N",
+                    help="the shipped throws made again through a camera with N times the pixels along each side")
     args = ap.parse_args()
+    if args.scale < 1:
+        ap.error(f"--scale needs a whole factor >= 1, got {args.scale}")
     exact, passes, names, blur = args.true_masks, args.albedo_passes, args.names, args.exposure
     if passes is not None and (exact or passes < 0):
         ap.error(f"--albedo-passes needs a count >= 0 and segmented masks, got {passes}")
@@ -113,10 +148,11 @@ if __name__ == "__main__":
         passes = 1  # as data.exposure turns it on
     OUT = RESULTS / ("noise_calibration_true_masks.json" if exact else "noise_calibration"
                      + (f"_albedo{passes}" if passes is not None else "")
-                     + ("_exposure_fitted" if blur else "") + ".json")
+                     + ("_exposure_fitted" if blur else "") + (f"_x{args.scale}" if args.scale > 1 else "")
+                     + ".json")
     settings = None if passes is None else SegmentationSettings(albedo_passes=passes)
     for name in names:
-        result = calibrate(name, exact, settings, blur)
+        result = calibrate(name, exact, settings, blur, args.scale)
         print(name, {e: round(r["chi2_per_obs"], 3) for e, r in result["rows"].items()}, "max over channels",
               {e: round(max(r["per_channel"].values()), 3) for e, r in result["rows"].items()}, flush=True)
         if not exact:
