@@ -53,7 +53,8 @@ from true_masks import load_problem
 from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
 from torchfit.losses import mask_moments
 from torchfit.paper._recording import Recording, load_recording
-from torchfit.shape import Camera, load_shape
+from torchfit.camera import Camera
+from torchfit.shape import load_shape
 from torchfit.residuals import CHANNELS, channel_values, noise_floor, systematic_floor
 from torchfit.video import SegmentationSettings
 
