@@ -717,12 +717,32 @@ def test_edge_term_of_the_noise_floor_is_the_one_given(tmp_path):
     assert floors[0.03] == pytest.approx(np.hypot(jitter, 0.03), rel=1e-12)
     assert floors[dv.EDGE_PX] == pytest.approx(np.hypot(jitter, dv.EDGE_PX), rel=1e-12)
     assert floors[dv.EDGE_PX] > floors[0.03] > jitter > 0
-    for bad in (-0.01, float("nan"), float("inf")):
+    for bad in (-0.01, float("nan"), float("inf"), "bogus"):
         with pytest.raises(ValueError, match="edge_px must be a non-negative"):
             dv.VideoProblem(problem, candidates=(), edge_px=bad)
-    cfg = _quick_discover("params.edge_px=-0.1")
-    with pytest.raises(ConfigError, match="params.edge_px must be a non-negative edge accuracy in pixels, got -0.1"):
-        run(cfg, tmp_path)
+    for bad in ("-0.1", "bogus", "true"):
+        cfg = _quick_discover(f"params.edge_px={bad}")
+        with pytest.raises(ConfigError, match="params.edge_px must be 'auto' or a non-negative edge accuracy in pixels"):
+            run(cfg, tmp_path)
+
+
+def test_auto_edge_term_follows_the_camera_through_both_calibrations():
+    """``edge_px="auto"`` (the default) takes :func:`edge_term` of the frames' size: EDGE_PX exactly
+    at 640 x 480 (so every stored run there keeps its floor), EDGE_PX_X2 at 1280 x 960, rising with
+    the pixels in between and beyond, and lower on a smaller camera; a VideoProblem resolves it for
+    its own frames."""
+    import torchfit.discover_video as dv
+
+    assert dv.edge_term(480, 640) == dv.EDGE_PX
+    assert dv.edge_term(960, 1280) == pytest.approx(dv.EDGE_PX_X2, rel=1e-12)
+    sizes = [(240, 320), (480, 640), (720, 960), (960, 1280), (1080, 1920), (1440, 1920)]
+    terms = [dv.edge_term(*size) for size in sizes]
+    assert all(a < b for a, b in zip(terms, terms[1:])) and 0 < terms[0] < dv.EDGE_PX
+    problem, truth = _synthetic("time_scale", {"time_scale": 1.0})
+    video = dv.VideoProblem(problem, candidates=())
+    assert video.edge_px == dv.edge_term(*problem.masks.shape[-2:])
+    video._set_noise(dv._Model(truth.select(torch.zeros(1, dtype=torch.long)), {}))
+    assert video.systematic["centroid_x"] == video.edge_px
 
 
 def test_added_effect_starts_from_the_screened_start_nearest_the_data():

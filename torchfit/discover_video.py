@@ -81,10 +81,11 @@ from .search import (
     candidate_poses,
     fit,
 )
+from .video import BAND_REFERENCE_PIXELS as EDGE_REFERENCE_PIXELS
 from .video import _boxes, camera_motion_fields, camera_motion_note, raw_moments
 
-__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_NEIGHBOURS",
-           "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "render_residuals"]
+__all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_PX_X2", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_NEIGHBOURS",
+           "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "edge_term", "render_residuals"]
 
 # Effects a silhouette can see (all of the vocabulary).
 VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
@@ -102,6 +103,22 @@ DEFAULT_CANDIDATES = ("quadratic_drag", "magnus", "angular_drag", "com_offset", 
 # (2026-11-26; with the render at crop 96, sigma 0.25 it was 0.45-1.07 and 0.29-0.75; at crop 64,
 # sigma 0.5, not whitened, 0.2 px: the renderer's own corner bias was in the residuals).
 EDGE_PX = 0.1
+# The same rule on the same four throws made through a camera with twice the pixels along each side
+# (1280 x 960, the same field of view; calibrate_noise.py --exposure --scale 2, fifty-fifth
+# session) gives 0.15 px. ``edge_px="auto"`` (the default) takes the edge term of a clip's camera
+# from both (:func:`edge_term`).
+EDGE_PX_X2 = 0.15
+
+
+def edge_term(height: int, width: int) -> float:
+    """The noise floor's edge term (px) for frames of ``height`` x ``width`` pixels: ``hypot(a, b r)``
+    with ``r = sqrt(H W / (640 480))``, the side's pixels over the calibrated camera's. Part of an
+    edge's error stays the same in pixels as the camera gains them (``a``: the codec's blocks, the
+    sensor), part grows with the picture (``b r``: shading and blur are so many pixels wider);
+    ``a`` and ``b`` put the curve through both calibrations, ``EDGE_PX`` at 640 x 480 and
+    ``EDGE_PX_X2`` at 1280 x 960 (0.18 px at 1920 x 1080, 0.21 at 1920 x 1440)."""
+    scaling = (EDGE_PX_X2**2 - EDGE_PX**2) / 3.0  # b^2, from r = 1 and r = 2
+    return math.sqrt(EDGE_PX**2 + scaling * (height * width / EDGE_REFERENCE_PIXELS - 1.0))  # EDGE_PX exactly at r = 1
 
 # Lag-one correlation of the segmentation error from frame to frame (AR(1) noise in every channel):
 # measured on the shipped recordings, which hide nothing, as segmented minus true masks
@@ -625,7 +642,8 @@ class VideoProblem:
         holdout: fraction of the used frames (the last ones) held out.
         search: settings of the baseline search from no guess.
         iterations: Levenberg-Marquardt iterations of each refit.
-        edge_px: systematic edge accuracy of the segmentation (see :mod:`torchfit.residuals`).
+        edge_px: systematic edge accuracy of the segmentation in pixels (see
+            :mod:`torchfit.residuals`); ``"auto"``: :func:`edge_term` of the frames' size.
         exposure: the camera's exposure (:class:`torchfit.search.Exposure`), or None. With one,
             the observation is ``coverage``, the (T, 6) raw moments of each frame's soft
             coverage (:attr:`torchfit.video.Observation.coverage_moments`), and each model's
@@ -711,7 +729,7 @@ class VideoProblem:
     """
 
     def __init__(self, problem: Problem, *, candidates: Sequence[str] = VIDEO_EFFECTS, holdout: float = 0.25,
-                 search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float = EDGE_PX,
+                 search: SearchSettings = SearchSettings(), iterations: int = 15, edge_px: float | str = "auto",
                  exposure: Exposure | None = None, coverage: Tensor | None = None, fit_exposure: bool = False,
                  point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
                  speed_noise: bool = False, heldout_deviance: bool = False, robust: float | None = None,
@@ -728,8 +746,11 @@ class VideoProblem:
             raise ValueError(f"jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
         if not isinstance(jump_refined, bool):
             raise ValueError(f"jump_refined must be True or False, got {jump_refined!r}")
-        if not (math.isfinite(edge_px) and edge_px >= 0):
-            raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels, got {edge_px}")
+        if edge_px == "auto":
+            edge_px = edge_term(*problem.masks.shape[-2:])
+        if isinstance(edge_px, (str, bool)) or not (math.isfinite(edge_px) and edge_px >= 0):
+            raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels or 'auto', got {edge_px!r}")
+        self.edge_px = float(edge_px)  # the noise floor's edge term, "auto" resolved for this camera
         if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
             raise ValueError(f"an exposure needs the ({len(problem.times)}, 6) raw moments of the frames' soft "
                              f"coverage, got {None if coverage is None else tuple(coverage.shape)}")
@@ -1786,7 +1807,7 @@ def left_out_lines(jumps: dict[int, dict[str, float]], moved: dict[str, list[int
 
 def discover_video(problem: Problem, observation, span: np.ndarray, *, candidates: Sequence[str] = DEFAULT_CANDIDATES,
                    settings: SelectionSettings = VIDEO_SELECTION, search: SearchSettings = SearchSettings(),
-                   iterations: int = 15, edge_px: float = EDGE_PX, out_dir: Path | None = None,
+                   iterations: int = 15, edge_px: float | str = "auto", out_dir: Path | None = None,
                    overlay: bool = True, truth: dict | None = None, exposure: Exposure | None = None,
                    fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                    baseline_starts: int = 1, speed_noise: bool = False, robust: float | None = None,
@@ -1803,8 +1824,9 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         search: the baseline search's settings.
         iterations: Levenberg-Marquardt iterations of each refit.
         edge_px: the masks' systematic edge accuracy in pixels, the noise floor's edge term
-            (``EDGE_PX`` for torchfit's segmentation of video; lower for masks without
-            segmentation error, see experiments/discover/calibrate_noise.py).
+            (``"auto"``: :func:`edge_term` of the frames' size, for torchfit's segmentation of
+            video; lower for masks without segmentation error, see
+            experiments/discover/calibrate_noise.py).
         out_dir: where ``discover.json``, ``residuals.png`` and ``overlay_discover.mp4`` go.
         truth: the recording's ``truth.json`` content (its ``effects`` are reported beside the verdict).
         exposure: the camera's exposure; with one, the observation is the frames' soft coverage
@@ -1892,7 +1914,7 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         "size_mismatch": size_mismatch(before.payload["edge_px"], after.payload["edge_px"]),
         "indistinguishable": [s.indistinguishable for s in selection.steps if s.indistinguishable],
         "noise": video.noise,
-        "noise_edge_px": edge_px,
+        "noise_edge_px": video.edge_px,
         "noise_speed_share": video.speed_share if speed_noise else None,
         "robust": robust, "backcast": backcast, "jump_sigmas": jump_sigmas,
         "jump_one_at_a_time": jump_one_at_a_time,

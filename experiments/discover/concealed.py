@@ -86,7 +86,7 @@ SHIPPED = ("tshape", "box_fast", "tshape_intermediate", "cylinder")  # the noise
 
 
 def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight: float | None = None,
-            candidates: tuple[str, ...] = CANDIDATES, edge_px: float = EDGE_PX, albedo_passes: int | None = None,
+            candidates: tuple[str, ...] = CANDIDATES, edge_px: float | str = "auto", albedo_passes: int | None = None,
             transfer: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
@@ -418,10 +418,23 @@ EXACT_EDGE_PX = 0.01
 EXACT_EDGES = (0.03, EXACT_EDGE_PX)  # the exact masks' rows below their default one, sharpest last
 
 
-def edge_suffix(edge_px: float) -> str:
+def edge_suffix(edge_px: float | str) -> str:
     """A results folder's suffix for runs whose noise floor has the edge term ``edge_px``
-    (none for the default ``EDGE_PX``)."""
-    return "" if edge_px == EDGE_PX else f"_edge{edge_px:g}"
+    (none for the default ``"auto"``, ``EDGE_PX`` at 640 x 480: the stored default runs)."""
+    return "" if edge_px == "auto" else f"_edge{edge_px:g}"
+
+
+def edge_arg(text: str) -> float | str:
+    """``--edge-px``: ``auto`` or a non-negative edge accuracy in pixels."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"needs 'auto' or a non-negative edge accuracy in pixels, got {text!r}")
+    return value
 
 
 # each kind of masks' results folder suffix
@@ -834,7 +847,7 @@ def results_name(settings: str, *, fresh: int = 0, true_masks: bool = False, shi
 
 def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, fresh: int = 0,
          table_only: bool = False, against: str | None = None, chroma_weight: float | None = None,
-         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float = EDGE_PX, sharp: bool = False,
+         shutter: bool = False, extra: tuple[str, ...] = (), edge_px: float | str = "auto", sharp: bool = False,
          crf: int | None = None, albedo_passes: int | None = None, transfer: str | None = None,
          read_as: str | None = None, exposure: bool = False, exposure_fraction: float | None = None,
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
@@ -999,8 +1012,9 @@ if __name__ == "__main__":
     ap.add_argument("--declare-lens", action="store_true",
                     help="the camera as calibrated, its lens distortion declared (truth.json camera_true): "
                          "a hidden lens is then known and the recording hides nothing (results/..._lensdeclared/)")
-    ap.add_argument("--edge-px", type=float, default=EDGE_PX, metavar="E",
-                    help=f"the noise floor's edge term in pixels (default {EDGE_PX:g}; results/concealed..._edge<E>/)")
+    ap.add_argument("--edge-px", type=edge_arg, default="auto", metavar="E",
+                    help=f"the noise floor's edge term in pixels (default auto: {EDGE_PX:g} at 640 x 480, "
+                         f"discover_video.edge_term; results/concealed..._edge<E>/)")
     ap.add_argument("--compare", metavar="REV", help="the rows rerun with today's edge nuisance against git REV's")
     ap.add_argument("--scoreboard", action="store_true",
                     help="the targets over every stored set, segmented and exact masks (results/scoreboard.md); "
@@ -1045,9 +1059,7 @@ if __name__ == "__main__":
         text = rules_text(rule_tally(masks_kinds={f"segmented ({variant[1:]})": variant} if variant else None))
         (OUT.parent / f"rules{variant}.md").write_text(text + "\n")
         sys.exit(print(text))
-    if not (args.edge_px >= 0):
-        ap.error(f"--edge-px needs a non-negative edge accuracy in pixels, got {args.edge_px}")
-    if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != EDGE_PX
+    if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != "auto"
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
                             or args.linear_shading or args.speed_noise or args.heldout_margin is not None
                             or args.robust is not None or args.backcast or args.search_final is not None):
@@ -1096,7 +1108,7 @@ if __name__ == "__main__":
         elif args.chroma_weight is not None:
             suffix, label = f"_chroma{args.chroma_weight:g}", f"chroma {args.chroma_weight:g}"
             text = side_by_side(suffix, label, column="segmentation")
-        elif args.edge_px != EDGE_PX:
+        elif args.edge_px != "auto":
             suffix, label = edge_suffix(args.edge_px), f"edge {args.edge_px:g} px"
             text = side_by_side(suffix, label, masks=("exact",), column="noise floor")
         else:
