@@ -1452,6 +1452,29 @@ REGION_EDGES = (0.02, 0.98)  # regions: the exact coverage's bins (np.digitize) 
 REGIONS = {"interior": 2, "ramp": 1, "outside": 0}  # ... from 0.98 on, between, below 0.02
 
 
+def _coverage_crops(truth: dict, shape, camera, masks: np.ndarray, kept: list, settings, samples: int):
+    """Per frame where the (T, H, W) mask is whole, ``(t, (y0, x0, y1, x1), exact, band, cover)``: the
+    crop around the mask (padded by the band and half the frame's travel), the exact coverage there
+    (:func:`_exact_coverage`), the segmentation's band and its coverage as the moments take it
+    (``kept[t]``, clipped unless the settings say not, within the band); each (h, w)."""
+    import torchfit.video as video
+    from torchfit.render import RenderMesh
+
+    sub_position, sub_rotation = _subframe_poses(truth)
+    mesh = RenderMesh.from_shape(shape, torch.float64)
+    velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
+    steps = settings.band_steps(*masks.shape[1:])
+    for t in np.flatnonzero(_whole(masks)):
+        rows, cols = np.nonzero(masks[t])
+        pad = steps + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
+        y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
+        y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
+        exact = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, y1 - y0, x1 - x0, samples)
+        band = video.motion_band(masks[t], steps, velocity[t])[y0:y1, x0:x1]
+        cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
+        yield t, (y0, x0, y1, x1), exact, band, cover
+
+
 def regions(folder: Path, settings=None, samples: int = 4) -> dict:
     """Where the soft coverage's centroid error lives. Per frame where the mask is whole, the
     segmentation's coverage (clipped to [0, 1], within its band, as its moments take it) minus the
@@ -1464,28 +1487,14 @@ def regions(folder: Path, settings=None, samples: int = 4) -> dict:
     ``sqrt(sum e^2 |x - c|^2 / 2) / A``: an error far above it is correlated from pixel to pixel
     (or systematic), not each pixel's own noise. ``total``: the three summed. Pinhole recordings
     only."""
-    import torchfit.video as video
-    from torchfit.render import RenderMesh
-
     settings = settings or SegmentationSettings()
     truth, shape, camera = recording_parts(folder)
     if camera.distorted:
         raise SystemExit("a lens recording: the exact coverage here takes no distortion")
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
-    sub_position, sub_rotation = _subframe_poses(truth)
-    mesh = RenderMesh.from_shape(shape, torch.float64)
-    velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
     shares = {name: [] for name in REGIONS}  # per frame (cx, cy, area, mean error, mean |error|, independent)
-    steps = settings.band_steps(*masks.shape[1:])
-    for t in np.flatnonzero(_whole(masks)):
-        rows, cols = np.nonzero(masks[t])
-        pad = steps + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
-        y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
-        y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
-        h, w = y1 - y0, x1 - x0
-        exact = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, h, w, samples)
-        band = video.motion_band(masks[t], steps, velocity[t])[y0:y1, x0:x1]
-        cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
+    for _, _, exact, _, cover in _coverage_crops(truth, shape, camera, masks, kept, settings, samples):
+        h, w = exact.shape
         error, area = cover - exact, exact.sum()
         v, u = np.mgrid[0:h, 0:w]
         cu, cv = (exact * u).sum() / area, (exact * v).sum() / area
@@ -1559,7 +1568,6 @@ def contrast_oracle(folder: Path, settings=None, samples: int = 4, seed: int = 0
     :func:`_stats` of (T,) px; ``contrast`` the median ``|F - B|`` at each share's cut.
     Pinhole recordings only."""
     import torchfit.video as video
-    from torchfit.render import RenderMesh
 
     settings = settings or SegmentationSettings()
     truth, shape, camera = recording_parts(folder)
@@ -1581,23 +1589,12 @@ def contrast_oracle(folder: Path, settings=None, samples: int = 4, seed: int = 0
     if len(contrasts) != len(kept):
         raise RuntimeError(f"{folder.name}: {len(contrasts)} contrasts for {len(kept)} coverages")
     rng = np.random.default_rng(seed)
-    sub_position, sub_rotation = _subframe_poses(truth)
-    mesh = RenderMesh.from_shape(shape, torch.float64)
-    velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(masks), 2))
-    steps = settings.band_steps(*masks.shape[1:])
     labels = (["as segmented"] + [f"lowest {q:g}" for q in ORACLE_SHARES] + [f"random {q:g}" for q in ORACLE_SHARES]
               + ["ramp exact"])
     errors = {label: [] for label in labels}
     cuts = {q: [] for q in ORACLE_SHARES}
-    for t in np.flatnonzero(_whole(masks)):
-        rows, cols = np.nonzero(masks[t])
-        pad = steps + int(math.ceil(np.abs(velocity[t]).max() / 2)) + 4
-        y0, x0 = max(rows.min() - pad, 0), max(cols.min() - pad, 0)
-        y1, x1 = min(rows.max() + pad + 1, masks.shape[1]), min(cols.max() + pad + 1, masks.shape[2])
-        h, w = y1 - y0, x1 - x0
-        exact = _exact_coverage(mesh, camera, sub_rotation[t], sub_position[t], x0, y0, h, w, samples)
-        band = video.motion_band(masks[t], steps, velocity[t])[y0:y1, x0:x1]
-        cover = (np.clip(kept[t], 0.0, 1.0) if settings.coverage_clip else kept[t])[y0:y1, x0:x1] * band
+    for t, (y0, x0, y1, x1), exact, band, cover in _coverage_crops(truth, shape, camera, masks, kept, settings,
+                                                                   samples):
         level = contrasts[t][y0:y1, x0:x1]
         ramp = band & (exact > REGION_EDGES[0]) & (exact < REGION_EDGES[1])
         for label, error in _oracle_errors(cover, exact, level, ramp, rng).items():
