@@ -85,7 +85,8 @@ from .video import BAND_REFERENCE_PIXELS as EDGE_REFERENCE_PIXELS
 from .video import _boxes, camera_motion_fields, camera_motion_note, raw_moments
 
 __all__ = ["DEFAULT_CANDIDATES", "EDGE_PRIOR_PX", "EDGE_PX", "EDGE_PX_X2", "EDGE_SHAPE_PRIOR_PX", "EFFECT_SCALES", "JUMP_NEIGHBOURS",
-           "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "edge_term", "render_residuals"]
+           "JUMP_SIGMAS", "VIDEO_EFFECTS", "VIDEO_SELECTION", "VideoProblem", "discover_video", "edge_setting", "edge_term",
+           "render_residuals"]
 
 # Effects a silhouette can see (all of the vocabulary).
 VIDEO_EFFECTS = ("quadratic_drag", "linear_drag", "magnus", "angular_drag", "wind", "com_offset", "inertia",
@@ -108,6 +109,21 @@ EDGE_PX = 0.1
 # session) gives 0.15 px. ``edge_px="auto"`` (the default) takes the edge term of a clip's camera
 # from both (:func:`edge_term`).
 EDGE_PX_X2 = 0.15
+
+
+def edge_setting(value) -> float | str:
+    """A noise-floor edge term as given (a config value, a command-line word, an argument):
+    ``"auto"`` or a non-negative finite number of pixels, as a float. Raises ValueError naming the
+    value otherwise (a bool, another word, a negative or non-finite number)."""
+    if isinstance(value, str) and value == "auto":
+        return value
+    try:
+        number = math.nan if isinstance(value, bool) else float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if not (math.isfinite(number) and number >= 0):
+        raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels or 'auto', got {value!r}")
+    return number
 
 
 def edge_term(height: int, width: int) -> float:
@@ -746,11 +762,9 @@ class VideoProblem:
             raise ValueError(f"jump_neighbours must be a whole number of frames >= 0, got {jump_neighbours!r}")
         if not isinstance(jump_refined, bool):
             raise ValueError(f"jump_refined must be True or False, got {jump_refined!r}")
-        if edge_px == "auto":
-            edge_px = edge_term(*problem.masks.shape[-2:])
-        if isinstance(edge_px, (str, bool)) or not (math.isfinite(edge_px) and edge_px >= 0):
-            raise ValueError(f"edge_px must be a non-negative edge accuracy in pixels or 'auto', got {edge_px!r}")
-        self.edge_px = float(edge_px)  # the noise floor's edge term, "auto" resolved for this camera
+        edge_px = edge_setting(edge_px)
+        # the noise floor's edge term, "auto" resolved for this camera
+        self.edge_px = edge_term(*problem.masks.shape[-2:]) if edge_px == "auto" else edge_px
         if exposure is not None and (coverage is None or coverage.shape != (len(problem.times), 6)):
             raise ValueError(f"an exposure needs the ({len(problem.times)}, 6) raw moments of the frames' soft "
                              f"coverage, got {None if coverage is None else tuple(coverage.shape)}")
@@ -809,7 +823,7 @@ class VideoProblem:
         if exposure is not None:
             mask_raw = torch.as_tensor(raw_moments(problem.masks.cpu().numpy() > 0.5))
             self.coverage_shift = coverage.to(problem.masks) - mask_raw.to(problem.masks)
-        self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, edge_px)
+        self.systematic = systematic_floor(problem.masks.cpu().numpy() > 0.5, used, self.edge_px)
         self.noise: dict | None = None  # per channel, set by the baseline fit
         self.speed_noise = speed_noise
         self.heldout_deviance = heldout_deviance

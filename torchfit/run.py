@@ -495,7 +495,8 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
         if cfg.data.get("points"):
             return run_points(cfg, out_dir, discover=True)
         raise ConfigError("discover: give data.video=<recording> or data.points=<t,x,y,z csv>")
-    from .discover_video import DEFAULT_CANDIDATES, JUMP_NEIGHBOURS, JUMP_SIGMAS, VIDEO_EFFECTS, discover_video
+    from .discover_video import (DEFAULT_CANDIDATES, JUMP_NEIGHBOURS, JUMP_SIGMAS, VIDEO_EFFECTS, discover_video,
+                                 edge_setting)
 
     ctx = context(cfg)
     settings = params(cfg)
@@ -503,15 +504,12 @@ def run_discover(cfg: DictConfig, out_dir: Path) -> dict:
     settings.pop("candidates", None)  # the points' list
     candidates = settings.pop("video_candidates", None) or list(DEFAULT_CANDIDATES)
     iterations = int(settings.pop("iterations", 15))
-    edge_px = settings.pop("edge_px", "auto")  # "auto": the edge term of the clip's camera (edge_term)
-    if edge_px != "auto":
-        given = edge_px
-        try:
-            edge_px = math.nan if isinstance(given, bool) else float(given)
-        except (TypeError, ValueError):
-            edge_px = math.nan
-        if not (math.isfinite(edge_px) and edge_px >= 0):
-            raise ConfigError(f"params.edge_px must be 'auto' or a non-negative edge accuracy in pixels, got {given!r}")
+    given = settings.pop("edge_px", "auto")  # "auto": the edge term of the clip's camera (discover_video.edge_term)
+    try:
+        edge_px = edge_setting(given)
+    except ValueError:
+        raise ConfigError(f"params.edge_px must be 'auto' or a non-negative edge accuracy in pixels, "
+                          f"got {given!r}") from None
     speed_noise = _switch(settings, "speed_noise")
     robust = settings.pop("robust", None)
     backcast = settings.pop("backcast", None)

@@ -52,9 +52,7 @@ from true_masks import load_problem
 
 from torchfit.discover_video import FRAME_CORRELATION, VideoProblem
 from torchfit.losses import mask_moments
-from torchfit.paper._recording import Recording, load_recording
-from torchfit.camera import Camera
-from torchfit.shape import load_shape
+from torchfit.paper._recording import Recording, load_recording, recording_from_folder
 from torchfit.residuals import CHANNELS, channel_values, noise_floor, systematic_floor
 from torchfit.video import SegmentationSettings
 
@@ -80,10 +78,7 @@ def scaled_recording(name: str, scale: int) -> Recording:
             raise SystemExit(f"no shipped recording {name!r}; choose from {sorted(specs)}")
         mr.offscreen_gl()
         mr.make_recording(make_concealed.scaled_spec(specs[name], scale), folder.parent)
-    truth = json.loads((folder / "truth.json").read_text())
-    shape = load_shape(str(folder / "mesh.obj"), density=float(truth["object"]["density"]))
-    masks = np.load(folder / "masks.npz")["masks"].astype(bool)
-    return Recording(name, folder, shape, Camera.from_file(folder / "camera.json"), truth, masks)
+    return recording_from_folder(name, folder)
 
 
 def correlation(rec, observation, lags=(1, 2)) -> dict:

@@ -68,6 +68,7 @@ from torchfit.discover_video import (
     across_velocity,
     angle_to_line,
     discover_video,
+    edge_setting,
     least_seen,
     lens_shift,
     lift_across,
@@ -425,16 +426,11 @@ def edge_suffix(edge_px: float | str) -> str:
 
 
 def edge_arg(text: str) -> float | str:
-    """``--edge-px``: ``auto`` or a non-negative edge accuracy in pixels."""
-    if text == "auto":
-        return text
+    """``--edge-px``: ``auto`` or a non-negative edge accuracy in pixels (:func:`edge_setting`)."""
     try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"needs 'auto' or a non-negative edge accuracy in pixels, got {text!r}")
-    return value
+        return edge_setting(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 # each kind of masks' results folder suffix

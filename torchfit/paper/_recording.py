@@ -65,7 +65,12 @@ def load_recording(name: str) -> Recording:
     """
     if name not in RECORDINGS:
         raise ValueError(f'recording "{name}" is not shipped; must be one of {list(RECORDINGS)}')
-    folder = Path(str(resources.files("torchfit").joinpath("recordings", name)))
+    return recording_from_folder(name, Path(str(resources.files("torchfit").joinpath("recordings", name))))
+
+
+def recording_from_folder(name: str, folder: Path) -> Recording:
+    """A recording in the shipped layout (truth.json, mesh.obj, camera.json, masks.npz) from any
+    ``folder``: a shipped one, or one made again elsewhere (e.g. through another camera)."""
     truth = json.loads((folder / "truth.json").read_text())
     shape = load_shape(str(folder / "mesh.obj"), density=float(truth["object"]["density"]))
     masks = np.load(folder / "masks.npz")["masks"].astype(bool)
