@@ -13,6 +13,7 @@ from torchfit.residuals import (
     locate,
     locate_prediction,
     noise_floor,
+    polynomial_trend,
     residual_channels,
 )
 from torchfit.video import load_observation
@@ -79,10 +80,55 @@ def test_a_predictions_miss_is_located_growing_away_from_the_fitted_frames(backw
     assert "at noise level: centroid_y, scale, shape, orientation" in found["summary"]
     quiet = locate_prediction({name: rng.normal(0, 0.1, T) for name in CHANNELS}, held, times, noise, backward)
     assert quiet["flagged"] == [] and quiet["summary"].startswith("at noise level")
-    # the same drift within what the prediction's own spread allows there is not a miss
-    spread = {name: np.where(held, 2 * (0.1 + 100 * away**2), np.nan) for name in CHANNELS}
-    allowed = locate_prediction(values, held, times, noise, backward=backward, spread=spread)
+    # the same drift within what the prediction's own spread allows there (one error of its
+    # parameters, shared by every frame it predicts) is not a miss
+    spread = np.where(held, 2 * (0.1 + 100 * away**2), 0.0)
+    covariance = {name: np.outer(spread, spread) for name in CHANNELS}
+    allowed = locate_prediction(values, held, times, noise, backward=backward, covariance=covariance)
     assert allowed["flagged"] == [] and allowed["channels"]["centroid_x"]["spread_largest"] > 6.0
+    # a miss of another shape than the spread's stands out of it: a drift that turns back
+    bent = dict(values, centroid_x=values["centroid_x"] + np.where(held, 4 * np.sin(away * 60 * np.pi / n), 0.0))
+    assert locate_prediction(bent, held, times, noise, backward=backward, covariance=covariance)["flagged"] == \
+        ["centroid_x"]
+
+
+def test_a_trend_under_a_covariance_is_the_trend_of_the_whitened_values():
+    """``polynomial_trend`` with a covariance is generalised least squares: the same degree,
+    coefficients and significance as ordinary least squares on the values and the polynomial's
+    columns whitened by hand; with ``sigma**2`` times the identity it is ``np.polyfit``'s fit."""
+    rng = np.random.default_rng(5)
+    n = 14
+    t = np.arange(n) / 60
+    values = 0.3 + 40 * t**2 + rng.normal(0, 0.1, n)
+    plain = polynomial_trend(t, values, 0.1)
+    same = polynomial_trend(t, values, 0.1, 0.01 * np.eye(n))
+    assert same["degree"] == plain["degree"] == 2
+    assert np.allclose(same["coefficients"], np.polyfit(t, values, 2), rtol=1e-9)
+    assert np.isclose(same["significance"], plain["significance"], rtol=1e-12)
+    a = 0.4 ** np.abs(np.subtract.outer(np.arange(n), np.arange(n)))  # AR(1), lag one 0.4
+    covariance = 0.01 * a * np.outer(1 + t, 1 + t)
+    got = polynomial_trend(t, values, 0.1, covariance)
+    factor = np.linalg.cholesky(covariance)
+    white, design = np.linalg.solve(factor, values), np.linalg.solve(factor, np.vander(t, got["degree"] + 1))
+    coeffs = np.linalg.lstsq(design, white, rcond=None)[0]
+    assert np.allclose(got["coefficients"], coeffs, rtol=1e-9)
+    drop = np.sum(white**2) - np.sum((white - design @ coeffs) ** 2)
+    assert np.isclose(got["significance"], np.sqrt(drop), rtol=1e-9)
+
+
+def test_frame_correlated_noise_judged_as_independent_makes_trends_and_under_its_covariance_does_not():
+    """AR(1) noise (lag one 0.4) on 12 frames, 4000 draws: judged as independent noise of its own
+    standard deviation, a trend stands past 3 of its z-scores in many more draws than the
+    chi-squared law allows; judged under its covariance, in about as many (chi-squared with the
+    chosen degree's freedoms: 0.3-3 % for one to three)."""
+    rng = np.random.default_rng(6)
+    n, draws, rho = 12, 4000, 0.4
+    t = np.arange(n) / 60
+    covariance = rho ** np.abs(np.subtract.outer(np.arange(n), np.arange(n)))
+    noise = rng.normal(size=(draws, n)) @ np.linalg.cholesky(covariance).T
+    independent = np.mean([polynomial_trend(t, x, 1.0)["significance"] > 3 for x in noise])
+    correlated = np.mean([polynomial_trend(t, x, 1.0, covariance)["significance"] > 3 for x in noise])
+    assert correlated < 0.04 and independent > 3 * correlated, (independent, correlated)
 
 
 @pytest.mark.parametrize("name", ["tshape", "box_fast"])

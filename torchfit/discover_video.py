@@ -942,7 +942,7 @@ class VideoProblem:
         of squares is the residual's chi-squared under that noise. A smooth trend counts as
         fewer independent observations than the frames it spans. With :attr:`robust`, each is
         then :func:`torchfit.residuals.huber_root`'s, so the sum of squares is Huber's cost;
-        ``squares`` keeps them whitened alone (a prediction's spread, :meth:`prediction_spread`).
+        ``squares`` keeps them whitened alone (a prediction's spread, :meth:`prediction_covariance`).
         """
         frames = torch.as_tensor(np.flatnonzero(mask), dtype=values.dtype, device=values.device)
         scaled = values / self.noise[channel]
@@ -1266,14 +1266,15 @@ class VideoProblem:
         reduced = float(r.square().sum()) / max(n - p, 1)
         return torch.linalg.pinv(j.T @ j) * max(reduced, 1.0)
 
-    def prediction_spread(self, held_model: _Model, resid: Tensor, jac: Tensor, held: np.ndarray) -> dict:
-        """Channel name -> (T,) standard deviation of ``held_model``'s prediction of the ``held``
-        frames from its fitted parameters' spread alone (channel units; NaN elsewhere): ``held_model``
-        fitted on the train frames with (N,) residual ``resid`` and (N, P) Jacobian ``jac`` there,
-        whose covariance (:meth:`_covariance`) is carried to each held frame's channels by their
-        Jacobian there, ``diag(J C Jᵀ)``. The held frames' Jacobian is taken on squares (Huber's
-        root would shrink it where the prediction misses most) and un-whitened to the channels'
-        own values (the AR(1) filter of :meth:`_whitened` inverted frame by frame)."""
+    def prediction_covariance(self, held_model: _Model, resid: Tensor, jac: Tensor, held: np.ndarray) -> dict:
+        """Channel name -> (T, T) covariance of ``held_model``'s prediction of the ``held`` frames
+        from its fitted parameters' spread alone (channel units; NaN off the used held frames):
+        ``held_model`` fitted on the train frames with (N,) residual ``resid`` and (N, P) Jacobian
+        ``jac`` there, whose covariance ``C`` (:meth:`_covariance`) is carried to each held
+        frame's channels by their Jacobian there, ``J C Jᵀ``. The held frames' Jacobian is taken
+        on squares (Huber's root would shrink it where the prediction misses most) and un-whitened
+        to the channels' own values (the AR(1) filter of :meth:`_whitened` inverted frame by
+        frame). Its diagonal's root is the prediction's own spread, frame by frame."""
         cov = self._covariance(held_model, resid, jac)
         mask = torch.as_tensor(held, device=self.problem.masks.device) & self.problem.used
         _, held_jac = self._jacobian(held_model, mask, squares=True)
@@ -1286,14 +1287,24 @@ class VideoProblem:
         for k in range(1, n):
             rows.append(a[k - 1] * rows[-1] + white[:, k] * torch.sqrt(1 - a[k - 1] ** 2))
         raw = torch.stack(rows, 1)  # (C, n, P) in noise floors
-        std = torch.einsum("cnp,pq,cnq->cn", raw, cov.double(), raw).clamp(min=0).sqrt().cpu().numpy()
-        scale = 1.0 if self.frame_scale is None else self.frame_scale[frames_idx]
+        spread = torch.einsum("cnp,pq,cmq->cnm", raw, cov.double(), raw).cpu().numpy()  # (C, n, n)
+        scale = np.ones(n) if self.frame_scale is None else self.frame_scale[frames_idx]
         out = {}
         for c, name in enumerate(CHANNELS):
-            values = np.full(len(held), np.nan)
-            values[frames_idx] = std[c] * self.noise[name] * scale
+            values = np.full((len(held), len(held)), np.nan)
+            values[np.ix_(frames_idx, frames_idx)] = spread[c] * self.noise[name] ** 2 * np.outer(scale, scale)
             out[name] = values
         return out
+
+    def noise_covariance(self) -> dict:
+        """Channel name -> (T, T) covariance of the noise over the span's frames, as the criterion
+        has it (:meth:`_whitened`): AR(1) from frame to frame, ``FRAME_CORRELATION`` to the power
+        of the frames' distance, each frame's floor ``self.noise[channel]`` times
+        ``self.frame_scale`` where the floors grow with the speed."""
+        frames = np.arange(len(self.problem.times))
+        scale = np.ones(len(frames)) if self.frame_scale is None else self.frame_scale
+        correlation = FRAME_CORRELATION ** np.abs(frames[:, None] - frames[None, :]) * np.outer(scale, scale)
+        return {name: self.noise[name] ** 2 * correlation for name in CHANNELS}
 
     def _heldout_terms(self, held_model: _Model, resid: Tensor, jac: Tensor, held: np.ndarray) -> tuple[float, float]:
         """The held-out frames' predictive deviance's two terms (:func:`torchfit.discover.predictive_terms`)
@@ -1747,8 +1758,8 @@ def plot_channels(models: Sequence[tuple[str, dict]], times: np.ndarray, noise: 
     ``models`` each ``(label, {channel: (T,) residuals})``, the (T,) ``train`` frames in blue and
     the (T,) ``held`` ones in red; the grey band is each channel's noise floor, times (T,)
     ``frame_scale`` per frame where the floors grow with the speed. ``spreads``, one per model
-    (``{channel: (T,) the prediction's own spread}``, NaN off the held frames;
-    :meth:`VideoProblem.prediction_spread`), adds a pink band on the held frames: the floor and
+    (``{channel: (T,) the prediction's own spread}``, NaN off the held frames; the root of
+    :meth:`VideoProblem.prediction_covariance`'s diagonal), adds a pink band on the held frames: the floor and
     that spread together, what a prediction is judged against."""
     import matplotlib
 
@@ -1898,20 +1909,22 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
     before, after = chain[0], chain[-1]
     located, located_after = locate(as_residuals(before)), locate(as_residuals(after))
 
-    # per model of the chain, each split's prediction spread (prediction_spread): two Jacobians a model
-    spreads = [[video.prediction_spread(model, *jacobian, held) for model, jacobian, (_, held)
-                in zip(f.payload["held_models"], f.payload["held_jacobians"], video.splits)] for f in chain]
+    # per model of the chain, each split's prediction covariance (prediction_covariance): two Jacobians a model
+    covariances = [[video.prediction_covariance(model, *jacobian, held) for model, jacobian, (_, held)
+                    in zip(f.payload["held_models"], f.payload["held_jacobians"], video.splits)] for f in chain]
+    noise_covariance = video.noise_covariance()
 
-    def predicted(fit_: ModelFit, spread_parts: list[dict]) -> list[dict]:  # each held-out part, as predicted
+    def predicted(fit_: ModelFit, parts: list[dict]) -> list[dict]:  # each held-out part, as predicted
         out = []
-        for name, channels, (_, held), spread in zip(HELDOUT_PARTS, fit_.payload["held_channels"], video.splits,
-                                                     spread_parts):
-            part = locate_prediction(channels, held, times, video.noise, backward=name == "start", spread=spread)
+        for name, channels, (_, held), covariance in zip(HELDOUT_PARTS, fit_.payload["held_channels"], video.splits,
+                                                         parts):
+            part = locate_prediction(channels, held, times, video.noise, backward=name == "start",
+                                     covariance=covariance, noise_covariance=noise_covariance)
             out.append(part | {"part": name, "frames": [int(span[i]) for i in part["frames"]],
                                "count": int(held.sum())})
         return out
 
-    located_heldout, located_heldout_after = predicted(before, spreads[0]), predicted(after, spreads[-1])
+    located_heldout, located_heldout_after = predicted(before, covariances[0]), predicted(after, covariances[-1])
     unexplained = _unexplained(video, after, located_after, times, used)
     effects = {}
     for step in selection.steps:
@@ -1997,8 +2010,8 @@ def discover_video(problem: Problem, observation, span: np.ndarray, *, candidate
         plot_channels([(f"{label}\nheld-out {f.payload['heldout_centroid_px']:.2f} px", _merged(f, video))
                        for label, f in labelled], times, video.noise, used & ~held_any, held_any,
                       out_dir / "residuals.png", video.frame_scale,
-                      [{name: np.fmax.reduce([part[name] for part in parts]) for name in CHANNELS}
-                       for parts in spreads])
+                      [{name: np.sqrt(np.fmax.reduce([np.diag(part[name]) for part in parts])) for name in CHANNELS}
+                       for parts in covariances])
         (out_dir / "report.txt").write_text("\n".join(report) + "\n")
         content["figures"] = ["discover.json", "residuals.png", "report.txt"]
         if overlay:

@@ -170,17 +170,33 @@ def huber_root(values: torch.Tensor, k: float) -> torch.Tensor:
     return torch.where(size <= k, values, torch.sign(values) * torch.sqrt((2 * k * size - k * k).clamp(min=k * k)))
 
 
-def polynomial_trend(times: np.ndarray, values: np.ndarray, sigma: float) -> dict:
-    """The simplest polynomial trend of (N,) ``values`` at (N,) ``times`` (degree 0-2, BIC with
-    the known noise ``sigma``) and its significance (a z-score from the drop in chi-squared)."""
+def polynomial_trend(times: np.ndarray, values: np.ndarray, sigma: float,
+                     covariance: np.ndarray | None = None) -> dict:
+    """The simplest polynomial trend of (N,) ``values`` at (N,) ``times`` (degree 0-2, BIC) and
+    its significance (a z-score from the drop in chi-squared).
+
+    The noise is independent with standard deviation ``sigma``, or has the (N, N) ``covariance``
+    (then ``sigma`` is unused): the trend is fitted by generalised least squares, every chi-squared
+    taken on the values and the polynomial's columns whitened by the covariance's Cholesky factor.
+    Noise correlated from frame to frame, or a prediction's spread from its fitted parameters
+    (one error shared by all its frames), then counts for what it is, not as independent frames
+    that a smooth trend would stand out of.
+    """
     n = len(values)
+    if covariance is None:
+        whiten = lambda x: x / sigma  # noqa: E731
+    else:
+        factor = np.linalg.cholesky(covariance)
+        whiten = lambda x: np.linalg.solve(factor, x)  # noqa: E731
+    white = whiten(values)
     best = None
-    chi2_zero = float(np.sum((values / sigma) ** 2))
+    chi2_zero = float(np.sum(white**2))
     for degree in (0, 1, 2):
         if n <= degree + 2:
             break
-        coeffs = np.polyfit(times, values, degree)
-        chi2 = float(np.sum(((values - np.polyval(coeffs, times)) / sigma) ** 2))
+        design = whiten(np.vander(times, degree + 1))  # (N, degree + 1), highest power first as np.polyval
+        coeffs = np.linalg.lstsq(design, white, rcond=None)[0]
+        chi2 = float(np.sum((white - design @ coeffs) ** 2))
         bic = chi2 + (degree + 1) * np.log(n)
         if best is None or bic < best["bic"]:
             best = {"degree": degree, "coefficients": coeffs.tolist(), "chi2": chi2, "bic": bic}
@@ -192,14 +208,17 @@ def polynomial_trend(times: np.ndarray, values: np.ndarray, sigma: float) -> dic
     return best
 
 
-def channel_trend(times: np.ndarray, values: np.ndarray, sigma: float, threshold: float = 5.0) -> dict:
+def channel_trend(times: np.ndarray, values: np.ndarray, sigma: float, threshold: float = 5.0,
+                  covariance: np.ndarray | None = None) -> dict:
     """One residual channel's trend, as :func:`locate` words it.
 
     Args:
         times: (N,) ascending times of the values.
         values: (N,) residuals.
-        sigma: their noise standard deviation.
+        sigma: their noise standard deviation (the floor the RMS and the onset are measured in).
         threshold: the trend must explain more than this many noise standard deviations.
+        covariance: (N, N) the values' covariance, which the trend and its significance are
+            fitted under (:func:`polynomial_trend`); None: independent noise of ``sigma``.
 
     Returns:
         ``rms``, ``significance``, ``trend`` (degree), ``growth`` (in words), ``sign`` of the
@@ -207,7 +226,7 @@ def channel_trend(times: np.ndarray, values: np.ndarray, sigma: float, threshold
         stays above two noise floors, or None) and ``flagged`` (significant, with an RMS above
         twice the noise).
     """
-    trend = polynomial_trend(times, values, sigma)
+    trend = polynomial_trend(times, values, sigma, covariance)
     fitted = np.polyval(trend["coefficients"], times) if trend["degree"] is not None else np.zeros_like(times)
     above = np.abs(fitted) > 2 * sigma
     rms = float(np.sqrt(np.mean(values**2)))
@@ -233,11 +252,15 @@ _FROM_PREDICTED = {"centroid_x": {1: "right of", -1: "left of"}, "centroid_y": {
 
 
 def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: dict, backward: bool = False,
-                      threshold: float = 5.0, spread: dict | None = None) -> dict:
+                      threshold: float = 5.0, covariance: dict | None = None,
+                      noise_covariance: dict | None = None) -> dict:
     """Where a prediction of held-out frames misses, in numbers and in words: :func:`locate`'s rule
     on the predicted frames, the time counted from the fitted frames outward, each frame's
-    residual over its floor: the noise floor, with ``spread`` the prediction's own spread added
-    in quadrature.
+    residual over its floor: the noise's, with ``covariance`` the prediction's own spread added.
+    The trend is fitted and judged under the two covariances together (:func:`polynomial_trend`):
+    the prediction's spread is one error of its fitted parameters, shared by every frame it
+    predicts, and the noise is correlated from frame to frame; neither is a smooth trend of
+    independent frames.
 
     A model fitted to all frames can take an effect's signature into its own freedoms (a drag into
     the launch speed and gravity's tilt) and leave residuals at noise level; its prediction of a
@@ -255,13 +278,17 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
             its last frame to its first.
         threshold: a channel's trend must explain more than this many floors, and its RMS over
             the floors exceed 2 (:func:`channel_trend`), to be flagged.
-        spread: channel name -> (T,) the prediction's standard deviation from its fitted
-            parameters (channel units), or None: the noise floor alone.
+        covariance: channel name -> (T, T) the prediction's covariance from its fitted parameters
+            (channel units; only the rows and columns of the held frames with a residual are
+            read), or None: none.
+        noise_covariance: channel name -> (T, T) the noise's covariance (read as ``covariance``),
+            or None: independent, of standard deviation ``noise[name]``.
 
     Returns:
         ``{"frames": [first, last], "channels": {name: {...}}, "flagged": [names], "summary": str}``;
         per channel ``rms``, ``largest`` (the largest absolute residual), ``noise``,
-        ``spread_largest`` (the prediction's largest spread there, 0 without ``spread``), ``unit``,
+        ``spread_largest`` (the prediction's largest standard deviation there, 0 without
+        ``covariance``), ``unit``,
         ``significance`` (of the trend over the floors, which decides ``flagged``), ``trend`` and
         ``growth`` (the miss's own, away from the fitted frames), ``flagged`` and, when flagged,
         ``words``.
@@ -278,10 +305,14 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
         if not np.isfinite(sigma) or finite.sum() < 5:
             continue
         sigma = max(sigma, 1e-9)
-        own = np.zeros(len(idx)) if spread is None else np.nan_to_num(spread[name][idx])
-        floor = np.sqrt(sigma**2 + own**2)[finite]
-        trend = channel_trend(t[finite], part[finite] / floor, 1.0, threshold)  # decides, in floors
-        shape = channel_trend(t[finite], part[finite], sigma, threshold)  # says how the miss itself grows
+        rows = np.ix_(idx[finite], idx[finite])
+        own = np.zeros((finite.sum(),) * 2) if covariance is None else covariance[name][rows]
+        total = own + (sigma**2 * np.eye(len(own)) if noise_covariance is None else noise_covariance[name][rows])
+        floor = np.sqrt(np.diag(total))
+        # decides, in floors; says how the miss itself grows, in the channel's units
+        trend = channel_trend(t[finite], part[finite] / floor, 1.0, threshold, total / np.outer(floor, floor))
+        shape = channel_trend(t[finite], part[finite], sigma, threshold, total)
+        own = np.sqrt(np.diag(own))
         largest = float(np.max(np.abs(part[finite])))
         report[name] = {"rms": shape["rms"], "largest": largest, "noise": sigma,
                         "spread_largest": float(own.max()), "unit": UNITS[name],
@@ -291,7 +322,7 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
             flagged.append(name)
             direction = _FROM_PREDICTED[name].get(shape["sign"], "off")
             growth = shape["growth"] + (" away from the fitted frames" if shape["trend"] else "")
-            own_words = "" if spread is None else f", the prediction's own spread up to {own.max():.2g}"
+            own_words = "" if covariance is None else f", the prediction's own spread up to {own.max():.2g}"
             report[name]["words"] = (f"{name} observed {direction} the prediction, {growth}, up to {largest:.3g} "
                                      f"{UNITS[name]} (noise floor {sigma:.2g}{own_words})")
             words.append(report[name]["words"])
