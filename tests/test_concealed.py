@@ -1187,29 +1187,42 @@ def test_search_outcomes_summary_counts_what_the_second_setting_changes():
         so.summary(rows + [{**rows[0], "finals": ["6", "9"]}])
 
 
-def test_compare_runs_reports_verdicts_and_the_largest_score_change(tmp_path):
+def test_compare_runs_reports_verdicts_and_the_largest_score_change(tmp_path, capsys):
     """compare_runs.py: runs under both roots compared; a moved ΔBIC is found in the round it moved
-    in, a changed verdict is listed, a run under one root only is left out."""
+    in, a changed verdict is listed, a run under one root only is left out; the predictions' lines
+    that flag a channel are told apart per tree and counted on the controls."""
     compare = _load("compare_runs", CONCEALED.parent / "compare_runs.py")
 
-    def write(root, name, verdict, bics):
+    def write(root, name, verdict, bics, truth=None, flagged=()):
         folder = root / "concealed_x" / name
         folder.mkdir(parents=True)
         effects = {effect: [{"delta_bic": b} for b in rounds] for effect, rounds in bics.items()}
+        lines = {"located_heldout": [{"part": "end", "flagged": list(flagged)}, {"part": "start", "flagged": []}],
+                 "located_heldout_after": [{"part": "end", "flagged": []}]}
         (folder / "discover.json").write_text(json.dumps({"verdict": verdict, "effects": effects,
-                                                          "indistinguishable": []}))
+                                                          "indistinguishable": [], "truth_effects": truth or {},
+                                                          **lines}))
     a, b = tmp_path / "a", tmp_path / "b"
-    write(a, "drag", ["quadratic_drag"], {"quadratic_drag": [40.0], "time_scale": [3.0, 1.0]})
-    write(b, "drag", ["quadratic_drag"], {"quadratic_drag": [40.1], "time_scale": [3.0, 1.5]})
-    write(a, "clock", [], {"time_scale": [9.0]})
-    write(b, "clock", ["time_scale"], {"time_scale": [12.0]})
+    drag, clock = {"quadratic_drag": {"drag_coefficient": 0.5}}, {"time_scale": {"time_scale": 1.02}}
+    write(a, "drag", ["quadratic_drag"], {"quadratic_drag": [40.0], "time_scale": [3.0, 1.0]}, drag, ["centroid_x"])
+    write(b, "drag", ["quadratic_drag"], {"quadratic_drag": [40.1], "time_scale": [3.0, 1.5]}, drag, ["centroid_x"])
+    write(a, "clock", [], {"time_scale": [9.0]}, clock)
+    write(b, "clock", ["time_scale"], {"time_scale": [12.0]}, clock)
     write(a, "only_here", [], {"time_scale": [1.0]})
+    write(a, "control", [], {"magnus": [-2.0]}, flagged=["shape"])
+    write(b, "control", [], {"magnus": [-2.0]})
     result = compare.compare(a, b)
+    control = result["runs"].pop(1)
+    assert control["control"] and not control["right"] and result["runs"][1]["right"] and not result["runs"][0]["right"]
+    assert control["flags"] == {"located_heldout": [True, False], "located_heldout_after": [False, False]}
     assert [r["run"] for r in result["runs"]] == ["concealed_x/clock", "concealed_x/drag"]
     assert [r["run"] for r in result["differ"]] == ["concealed_x/clock"]
     drag = result["runs"][1]
     assert drag["largest_delta_bic_change"] == pytest.approx(0.5) and drag["where"] == ["time_scale", 1]
     assert compare.main([str(a), str(b), "--out", str(tmp_path / "c.json")]) == 0
+    out = capsys.readouterr().out
+    assert "controls, 1 runs: the baseline's predictions flag a channel on 1 (first) and 0 (second)" in out
+    assert "named right (first tree), 1 runs: the baseline's predictions flag a channel on 1 (first) and 1 (second)" in out
     assert json.loads((tmp_path / "c.json").read_text())["largest"][0]["run"] == "concealed_x/clock"
 
 
