@@ -306,13 +306,14 @@ def locate_prediction(values: dict, held: np.ndarray, times: np.ndarray, noise: 
             continue
         sigma = max(sigma, 1e-9)
         rows = np.ix_(idx[finite], idx[finite])
-        own = np.zeros((finite.sum(),) * 2) if covariance is None else covariance[name][rows]
-        total = own + (sigma**2 * np.eye(len(own)) if noise_covariance is None else noise_covariance[name][rows])
+        own_cov = np.zeros((finite.sum(),) * 2) if covariance is None else covariance[name][rows]
+        total = own_cov + (sigma**2 * np.eye(len(own_cov)) if noise_covariance is None
+                           else noise_covariance[name][rows])
         floor = np.sqrt(np.diag(total))
         # decides, in floors; says how the miss itself grows, in the channel's units
         trend = channel_trend(t[finite], part[finite] / floor, 1.0, threshold, total / np.outer(floor, floor))
         shape = channel_trend(t[finite], part[finite], sigma, threshold, total)
-        own = np.sqrt(np.diag(own))
+        own = np.sqrt(np.diag(own_cov))  # the prediction's own spread, frame by frame
         largest = float(np.max(np.abs(part[finite])))
         report[name] = {"rms": shape["rms"], "largest": largest, "noise": sigma,
                         "spread_largest": float(own.max()), "unit": UNITS[name],
