@@ -768,6 +768,31 @@ def test_auto_edge_term_follows_the_camera_through_both_calibrations():
     assert video.systematic["centroid_x"] == video.edge_px
 
 
+def test_edge_term_matches_the_stored_calibrations_at_three_cameras():
+    """The stored calibrations (experiments/discover/calibrate_noise.py --exposure [--scale N], the
+    four shipped throws) by their rule, the grid value whose largest chi-squared per observation is
+    nearest 1: EDGE_PX at 640 x 480 and EDGE_PX_X2 at 1280 x 960, the two points :func:`edge_term`
+    passes through, and at 1920 x 1440, which it extrapolates to, within half the grid's step there
+    (0.05 px)."""
+    import json
+    from pathlib import Path
+
+    import torchfit.discover_video as dv
+
+    results = Path(__file__).resolve().parents[1] / "experiments" / "discover" / "results"
+
+    def calibrated(suffix: str) -> float:
+        throws = json.loads((results / f"noise_calibration_albedo1_exposure_fitted{suffix}.json").read_text())
+        assert sorted(throws) == ["box_fast", "cylinder", "tshape", "tshape_intermediate"]
+        edges = list(next(iter(throws.values()))["rows"])
+        worst = {e: max(t["rows"][e]["chi2_per_obs"] for t in throws.values()) for e in edges}
+        return float(min(edges, key=lambda e: abs(worst[e] - 1.0)))
+
+    assert calibrated("") == dv.EDGE_PX
+    assert calibrated("_x2") == dv.EDGE_PX_X2
+    assert abs(dv.edge_term(1440, 1920) - calibrated("_x3")) <= 0.025
+
+
 def test_added_effect_starts_from_the_screened_start_nearest_the_data():
     """An effect's refit screens its null and one scale unit either side (SCREEN_ITERATIONS LM
     iterations each) and goes on from the one that ends lowest: with a clock of 1.04 hidden, the

@@ -132,7 +132,9 @@ def edge_term(height: int, width: int) -> float:
     edge's error stays the same in pixels as the camera gains them (``a``: the codec's blocks, the
     sensor), part grows with the picture (``b r``: shading and blur are so many pixels wider);
     ``a`` and ``b`` put the curve through both calibrations, ``EDGE_PX`` at 640 x 480 and
-    ``EDGE_PX_X2`` at 1280 x 960 (0.18 px at 1920 x 1080, 0.21 at 1920 x 1440)."""
+    ``EDGE_PX_X2`` at 1280 x 960 (0.18 px at 1920 x 1080, 0.21 at 1920 x 1440, where the same
+    calibration, not used to fit the curve, gives 0.2: experiments/discover/HISTORY.md,
+    fifty-eighth session)."""
     scaling = (EDGE_PX_X2**2 - EDGE_PX**2) / 3.0  # b^2, from r = 1 and r = 2
     return math.sqrt(EDGE_PX**2 + scaling * (height * width / EDGE_REFERENCE_PIXELS - 1.0))  # EDGE_PX exactly at r = 1
 
