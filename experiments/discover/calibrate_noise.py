@@ -5,6 +5,7 @@
     python experiments/discover/calibrate_noise.py --albedo-passes N [names...]  # SegmentationSettings.albedo_passes N
     python experiments/discover/calibrate_noise.py --exposure [names...]  # the data.exposure path
     python experiments/discover/calibrate_noise.py --exposure --scale 2 [names...]  # through a camera of twice the pixels
+    python experiments/discover/calibrate_noise.py --exposure --sharp [names...]  # the throws without motion blur
 
 For each shipped MuJoCo recording (nothing missing: the model is exact up to segmentation):
 
@@ -36,6 +37,11 @@ pixels along each side, the same field of view (``make_concealed.scaled_spec``, 
 sets' ``--scale``), in recordings_shipped_x<N>/ beside this script (made once, then reused), and
 calibrated there; the results file gets ``_x<N>``. The segmentation takes its defaults for that
 camera (``coverage_near_px=auto``: 8 steps at 1280 x 960).
+
+With ``--sharp`` the throws are made again without motion blur (one render per frame,
+``make_concealed.sharp_spec``, as the concealed sets' ``--sharp``), in recordings_shipped_sharp/
+(``_sharp_x<N>/`` with ``--scale N``), and the results file gets ``_sharp``: the edge term of a
+camera with a short exposure.
 """
 
 from __future__ import annotations
@@ -63,11 +69,12 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 
 
-def scaled_recording(name: str, scale: int) -> Recording:
+def scaled_recording(name: str, scale: int, sharp: bool = False) -> Recording:
     """The shipped recording ``name``'s throw through a camera with ``scale`` times the pixels along
-    each side (``make_concealed.scaled_spec``), made in ``recordings_shipped_x<scale>/`` the first
+    each side (``make_concealed.scaled_spec``), without motion blur if ``sharp``
+    (``make_concealed.sharp_spec``), made in ``recordings_shipped[_sharp][_x<scale>]/`` the first
     time and read from there after."""
-    folder = HERE / f"recordings_shipped_x{scale}" / name
+    folder = HERE / ("recordings_shipped" + ("_sharp" if sharp else "") + (f"_x{scale}" if scale > 1 else "")) / name
     if not (folder / "truth.json").exists():
         sys.path.insert(0, str(HERE.parent / "recordings"))
         import make_concealed
@@ -77,7 +84,8 @@ def scaled_recording(name: str, scale: int) -> Recording:
         if name not in specs:
             raise SystemExit(f"no shipped recording {name!r}; choose from {sorted(specs)}")
         mr.offscreen_gl()
-        mr.make_recording(make_concealed.scaled_spec(specs[name], scale), folder.parent)
+        spec = make_concealed.scaled_spec(specs[name], scale)
+        mr.make_recording(make_concealed.sharp_spec(spec) if sharp else spec, folder.parent)
     return recording_from_folder(name, folder)
 
 
@@ -95,12 +103,15 @@ def correlation(rec, observation, lags=(1, 2)) -> dict:
 
 
 def calibrate(name: str, true_masks: bool = False, settings: SegmentationSettings | None = None,
-              exposure: bool = False, scale: int = 1) -> dict:
-    rec = load_recording(name) if scale == 1 else scaled_recording(name, scale)
+              exposure: bool = False, scale: int = 1, sharp: bool = False) -> dict:
+    rec = load_recording(name) if scale == 1 and not sharp else scaled_recording(name, scale, sharp)
     observation, problem, span = load_problem(rec.folder, rec.shape, rec.camera, true_masks, settings)
     blur = {}
     if exposure:  # the data.exposure path: the soft coverage against the recording's exposure, fitted
-        blur = {"exposure": recording_exposure(rec.truth), "fit_exposure": True,
+        # a sharp throw has no renderer's exposure to start from: 0.5 of the interval, a camera's
+        # (no sub-frames), as the default's runs start (concealed.py --exposure-fraction 0.5 --exposure-taps 0)
+        start = recording_exposure(rec.truth, 0.5, 0) if sharp else recording_exposure(rec.truth)
+        blur = {"exposure": start, "fit_exposure": True,
                 "coverage": torch.as_tensor(observation.coverage_moments[span])}
     video = VideoProblem(problem, candidates=(), **blur)
     base = video.fit((), None)
@@ -132,6 +143,7 @@ if __name__ == "__main__":
                          "(with the albedo pass unless --albedo-passes says otherwise)")
     ap.add_argument("--scale", type=int, default=1, metavar="N",
                     help="the shipped throws made again through a camera with N times the pixels along each side")
+    ap.add_argument("--sharp", action="store_true", help="the shipped throws made again without motion blur")
     args = ap.parse_args()
     if args.scale < 1:
         ap.error(f"--scale needs a whole factor >= 1, got {args.scale}")
@@ -142,13 +154,14 @@ if __name__ == "__main__":
         ap.error("--exposure needs the segmentation's soft coverage, not --true-masks")
     if blur and passes is None:
         passes = 1  # as data.exposure turns it on
-    OUT = RESULTS / ("noise_calibration_true_masks.json" if exact else "noise_calibration"
+    OUT = RESULTS / ("noise_calibration" + ("_true_masks" if exact else "")
                      + (f"_albedo{passes}" if passes is not None else "")
-                     + ("_exposure_fitted" if blur else "") + (f"_x{args.scale}" if args.scale > 1 else "")
+                     + ("_exposure_fitted" if blur else "") + ("_sharp" if args.sharp else "")
+                     + (f"_x{args.scale}" if args.scale > 1 else "")
                      + ".json")
     settings = None if passes is None else SegmentationSettings(albedo_passes=passes)
     for name in names:
-        result = calibrate(name, exact, settings, blur, args.scale)
+        result = calibrate(name, exact, settings, blur, args.scale, args.sharp)
         print(name, {e: round(r["chi2_per_obs"], 3) for e, r in result["rows"].items()}, "max over channels",
               {e: round(max(r["per_channel"].values()), 3) for e, r in result["rows"].items()}, flush=True)
         if not exact:
