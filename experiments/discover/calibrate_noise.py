@@ -69,7 +69,7 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 
 
-def scaled_recording(name: str, scale: int, sharp: bool = False) -> Recording:
+def remade_recording(name: str, scale: int, sharp: bool = False) -> Recording:
     """The shipped recording ``name``'s throw through a camera with ``scale`` times the pixels along
     each side (``make_concealed.scaled_spec``), without motion blur if ``sharp``
     (``make_concealed.sharp_spec``), made in ``recordings_shipped[_sharp][_x<scale>]/`` the first
@@ -89,6 +89,15 @@ def scaled_recording(name: str, scale: int, sharp: bool = False) -> Recording:
     return recording_from_folder(name, folder)
 
 
+def edge_by_rule(results: dict) -> float:
+    """The edge term the calibration gives: of ``results`` (this script's file, throw name -> its
+    ``calibrate`` output), the grid value whose largest chi-squared per observation over the throws
+    (each the mean over the five channels) is nearest 1."""
+    edges = list(next(iter(results.values()))["rows"])
+    worst = {e: max(r["rows"][e]["chi2_per_obs"] for r in results.values()) for e in edges}
+    return float(min(edges, key=lambda e: abs(worst[e] - 1.0)))
+
+
 def correlation(rec, observation, lags=(1, 2)) -> dict:
     """Per channel, the autocorrelation of segmented minus true masks' channels at ``lags`` frames."""
     true = np.load(rec.folder / "masks.npz")["masks"].astype(bool)
@@ -104,7 +113,7 @@ def correlation(rec, observation, lags=(1, 2)) -> dict:
 
 def calibrate(name: str, true_masks: bool = False, settings: SegmentationSettings | None = None,
               exposure: bool = False, scale: int = 1, sharp: bool = False) -> dict:
-    rec = load_recording(name) if scale == 1 and not sharp else scaled_recording(name, scale, sharp)
+    rec = load_recording(name) if scale == 1 and not sharp else remade_recording(name, scale, sharp)
     observation, problem, span = load_problem(rec.folder, rec.shape, rec.camera, true_masks, settings)
     blur = {}
     if exposure:  # the data.exposure path: the soft coverage against the recording's exposure, fitted
@@ -170,3 +179,5 @@ if __name__ == "__main__":
         OUT.parent.mkdir(parents=True, exist_ok=True)
         results = json.loads(OUT.read_text()) if OUT.exists() else {}  # other runs may have written
         OUT.write_text(json.dumps(results | {name: result}, indent=1))
+    stored = json.loads(OUT.read_text())
+    print(f"edge term by the rule over {sorted(stored)}: {edge_by_rule(stored):g} px")
