@@ -1248,3 +1248,34 @@ def test_shake_maps_agree_with_camera_motion_and_a_pan_moves_the_principal_point
         assert point[0] / point[2] - 319.5 - x == pytest.approx(659.0 * np.tan(np.arctan(x / 659.0) + pan) - x)
         assert point[1] / point[2] == pytest.approx(239.5)
     assert shake.shake_maps(record | {"maps": panned[None].tolist()}, size)[0] == pytest.approx(panned)
+
+
+def test_error_moved_keeps_each_frames_error_and_moves_it_to_another_frame():
+    """``true_masks.error_moved``: the identity order gives the segmented moments back; a shuffled
+    order puts frame j's centroid offset and area ratio on frame k (where order[k] = j), and its
+    second moments' offset relative to the object's size squared; an empty frame keeps the
+    segmentation's; an order that does not permute the usable frames is refused, naming it."""
+    sys.path.insert(0, str(CONCEALED.parent))
+    tm = _load("true_masks", CONCEALED.parent / "true_masks.py")
+    from torchfit.video import raw_moments
+
+    rng = np.random.default_rng(0)
+    exact_masks = np.zeros((5, 40, 50), bool)
+    seg_masks = np.zeros((5, 40, 50), bool)
+    for t in range(4):  # frame 4 empty in both
+        exact_masks[t, 10 + t:20 + t, 5 + 3 * t:19 + 3 * t] = True
+        seg_masks[t, 10 + t + rng.integers(0, 2):21 + t, 5 + 3 * t + rng.integers(0, 3):18 + 3 * t] = True
+    exact, seg = raw_moments(exact_masks), raw_moments(seg_masks)
+    np.testing.assert_allclose(tm.error_moved(seg, exact, np.arange(4)), seg, rtol=1e-12, atol=1e-9)
+    order = np.array([2, 0, 3, 1])
+    moved = tm.error_moved(seg, exact, order)
+    a_e, c_e, s_e = tm.central_moments(exact[:4])
+    a_s, c_s, s_s = tm.central_moments(seg[:4])
+    a_m, c_m, s_m = tm.central_moments(moved[:4])
+    np.testing.assert_allclose(a_m / a_e, (a_s / a_e)[order], rtol=1e-12)
+    np.testing.assert_allclose(c_m - c_e, (c_s - c_e)[order], atol=1e-9)
+    size = s_e[:, 0] + s_e[:, 2]  # the second moments' error moves relative to the object's size squared
+    np.testing.assert_allclose((s_m - s_e) / size[:, None], ((s_s - s_e) / size[:, None])[order], atol=1e-12)
+    np.testing.assert_array_equal(moved[4], seg[4])
+    with pytest.raises(ValueError, match="permute the 4 frames"):
+        tm.error_moved(seg, exact, np.array([0, 1, 1, 2]))

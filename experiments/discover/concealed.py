@@ -15,6 +15,7 @@
     python experiments/discover/concealed.py --exposure [...]         # the soft coverage against the exposure's average
     python experiments/discover/concealed.py --exposure --coverage-near-px N [...]  # the coverage counted within N px of the mask
     python experiments/discover/concealed.py --sharp [--fresh K] [...] # the set remade without motion blur (make_concealed.py --sharp)
+    python experiments/discover/concealed.py --sharp --exposure --shuffle-error S [...] # its segmentation error, shuffled in time, on the exact masks
     python experiments/discover/concealed.py --search-final N [...]  # the baseline search polishes up to N distinct minima
     python experiments/discover/concealed.py --true-masks --edge-px E [...] # another edge term in the noise floor
     python experiments/discover/concealed.py --transfer T [--read-as R] [...] # the set stored through camera curve T (make_concealed.py --transfer T), segmented as T (or as R)
@@ -49,12 +50,13 @@ import math
 import subprocess
 import sys
 import time
+import zlib
 from dataclasses import replace
 from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
-from true_masks import fps_factor, fresh_folder, load_problem, recording_parts
+from true_masks import fps_factor, fresh_folder, load_problem, recording_parts, with_error_shuffled
 
 import torchfit
 from torchfit.discover import without_weakest_block
@@ -96,7 +98,11 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
             backcast: bool = False, search_final: int | None = None,
             jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
-            jump_neighbours: int = 0, jump_refined: bool = False) -> dict:
+            jump_neighbours: int = 0, jump_refined: bool = False, shuffle_error: int | None = None) -> dict:
+    """Discover on one recording ``folder``, written to ``out``. ``shuffle_error``: a seed; the soft
+    coverage's moments are then the engine's exact masks' carrying the segmentation's own
+    per-frame error in a shuffled order (:func:`true_masks.with_error_shuffled`; a set made
+    without blur, whose exact masks are its frames' instants)."""
     truth, shape, camera = recording_parts(folder)
     if declare_lens:  # the camera as calibrated (truth.json camera_true): a lens the recording hides is known
         camera = Camera.from_dict(truth["camera_true"])
@@ -107,6 +113,9 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
                                  ("shading_fit", shading_fit)) if v is not None}
     settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
+    if shuffle_error is not None:
+        masks = np.load(folder / "masks.npz")["masks"].astype(bool)
+        observation = with_error_shuffled(observation, masks, (shuffle_error, zlib.crc32(folder.name.encode())))
     rules = VIDEO_SELECTION if heldout_margin is None else replace(VIDEO_SELECTION, heldout_margin=heldout_margin)
     return discover_video(problem, observation, span, candidates=candidates, settings=rules,
                           edge_px=edge_px, truth=truth, out_dir=out, overlay=False, progress=print,
@@ -853,7 +862,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          robust: float | None = None, declare_lens: bool = False, backcast: bool = False,
          search_final: int | None = None, scale: int = 1, fps_scale: Fraction = Fraction(1),
          jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
-         jump_neighbours: int = 0, jump_refined: bool = False) -> None:
+         jump_neighbours: int = 0, jump_refined: bool = False, shuffle_error: int | None = None) -> None:
     # the set, or its copy without motion blur, at another H.264 quality, through a camera curve or
     # through a camera of more pixels
     recordings = fresh_folder(fresh, sharp, crf, transfer, scale, fps_scale)
@@ -867,7 +876,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                 + heldout_suffix(heldout_margin) + robust_suffix(robust)
                 + backcast_suffix(backcast) + edge_suffix(edge_px)
                 + final_suffix(search_final) + jump_suffix(jump_sigmas, jump_one_at_a_time, jump_neighbours,
-                                                                      jump_refined))
+                                                                      jump_refined)
+                + (f"_errshuffled{shuffle_error}" if shuffle_error is not None else ""))
     out = OUT.with_name(results_name(settings, fresh=fresh, true_masks=true_masks, shipped=shipped, shutter=shutter,
                                      chroma_weight=chroma_weight, variant=variant, read_as=read_as,
                                      declare_lens=declare_lens))
@@ -900,7 +910,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
                           backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas,
                           jump_one_at_a_time=jump_one_at_a_time, jump_neighbours=jump_neighbours,
-                          jump_refined=jump_refined)
+                          jump_refined=jump_refined, shuffle_error=shuffle_error)
         print(f"== {folder.name}: verdict {content['verdict']} (truth {list(content['truth_effects'])}), "
               f"{time.perf_counter() - clock:.0f} s", flush=True)
         summary = rebuild(out, recordings)  # after each recording, with what other runs have written meanwhile
@@ -919,6 +929,9 @@ if __name__ == "__main__":
                          "(results/rolling_shutter[_true_masks]/)")
     ap.add_argument("--sharp", action="store_true",
                     help="the set remade without motion blur (make_concealed.py --sharp; results/..._sharp/)")
+    ap.add_argument("--shuffle-error", type=int, default=None, metavar="SEED",
+                    help="with --sharp --exposure: the exact masks' moments carrying the segmentation's own "
+                         "per-frame error in a shuffled order (results/..._errshuffled<SEED>_sharp/)")
     ap.add_argument("--crf", type=int, default=None, metavar="C",
                     help="the set encoded at H.264 quality C (make_concealed.py --crf C; results/..._crf<C>/)")
     ap.add_argument("--scale", type=int, default=1, metavar="N",
@@ -1174,6 +1187,9 @@ if __name__ == "__main__":
     if (args.transfer and (args.shutter or args.shipped or args.true_masks)) or (args.read_as and not args.transfer):
         ap.error("--transfer is a segmented concealed set stored through a camera curve (not with --shutter, "
                  "--shipped or --true-masks); --read-as only with --transfer")
+    if args.shuffle_error is not None and not (args.sharp and args.exposure and not args.true_masks):
+        ap.error(f"--shuffle-error {args.shuffle_error} needs --sharp (exact masks at the frames' instants) and "
+                 "--exposure (the soft coverage it moves the error of), and not --true-masks")
     main(args.names, true_masks=args.true_masks, shipped=args.shipped, fresh=args.fresh, table_only=args.table,
          against=args.compare, chroma_weight=args.chroma_weight, shutter=args.shutter, extra=tuple(args.extra),
          edge_px=args.edge_px, sharp=args.sharp, crf=args.crf, albedo_passes=args.albedo_passes,
@@ -1185,4 +1201,4 @@ if __name__ == "__main__":
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
          fps_scale=args.fps_scale, jump_sigmas=jump_sigmas, jump_one_at_a_time=args.jump_one_at_a_time,
-         jump_neighbours=args.jump_neighbours, jump_refined=args.jump_refined)
+         jump_neighbours=args.jump_neighbours, jump_refined=args.jump_refined, shuffle_error=args.shuffle_error)

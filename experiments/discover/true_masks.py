@@ -101,6 +101,56 @@ def with_masks(observation, masks: np.ndarray):
     return dataclasses.replace(observation, masks=masks, boxes=_boxes(masks), coverage_moments=raw_moments(masks))
 
 
+def central_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Area (T,), centroid (T, 2) and central second moments per unit area (T, 3) ``(mu20, mu11,
+    mu02)`` of (T, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` (NaN where the area is 0)."""
+    area = moments[:, 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = moments[:, 1:3] / area[:, None]
+        second = moments[:, 3:6] / area[:, None] - np.stack((c[:, 0] ** 2, c[:, 0] * c[:, 1], c[:, 1] ** 2), -1)
+    return area, c, second
+
+
+def raw_of_central(area: np.ndarray, c: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """(T, 6) raw moments of :func:`central_moments`' area (T,), centroid (T, 2), second moments (T, 3)."""
+    per_area = second + np.stack((c[:, 0] ** 2, c[:, 0] * c[:, 1], c[:, 1] ** 2), -1)
+    return np.concatenate((area[:, None], area[:, None] * c, area[:, None] * per_area), -1)
+
+
+def error_moved(segmented: np.ndarray, exact: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """(T, 6) raw moments: the ``exact`` (T, 6) moments, each frame carrying the ``segmented``
+    (T, 6) moments' error of the frame ``order`` names.
+
+    ``order``: (F,) a permutation of 0..F-1 over the F frames where both are non-empty (in frame
+    order): the k-th of them takes the error of the ``order[k]``-th. Frames where either is empty
+    keep the segmented moments. A frame's error is its area ratio, its centroid offset (pixels)
+    and its central second moments' offset relative to the exact ones' trace (the object's size
+    squared, which differs a little from frame to frame); the identity ``order`` gives
+    ``segmented`` back.
+    """
+    both = np.flatnonzero((segmented[:, 0] > 0) & (exact[:, 0] > 0))
+    if sorted(np.asarray(order).tolist()) != list(range(len(both))):
+        raise ValueError(f"order must permute the {len(both)} frames where both are non-empty, got {order}")
+    a_s, c_s, s_s = central_moments(segmented[both])
+    a_e, c_e, s_e = central_moments(exact[both])
+    size = (s_e[:, 0] + s_e[:, 2])[:, None]
+    spread = (s_s - s_e) / size
+    out = np.asarray(segmented, np.float64).copy()
+    out[both] = raw_of_central(a_e * (a_s / a_e)[order], c_e + (c_s - c_e)[order], s_e + spread[order] * size)
+    return out
+
+
+def with_error_shuffled(observation, masks: np.ndarray, seed: int | tuple[int, ...]):
+    """``observation`` whose soft coverage's moments are the (T, H, W) bool exact ``masks``' moments
+    carrying its own per-frame error (against them) in a shuffled order (:func:`error_moved`, a
+    permutation drawn from ``seed``, numpy's seed sequence): the error's size, spread, tails and
+    mean stay, its order in time and its tie to the throw go."""
+    exact, seg = raw_moments(masks), observation.coverage_moments
+    count = int(((seg[:, 0] > 0) & (exact[:, 0] > 0)).sum())
+    order = np.random.default_rng(seed).permutation(count)
+    return dataclasses.replace(observation, coverage_moments=error_moved(seg, exact, order))
+
+
 def problem_of(observation, shape, camera: Camera):
     """The fit problem (float32, CPU) of an observation, and its span of frames."""
     return build_problem(observation, shape, camera, g=9.81, dtype=torch.float32, device=torch.device("cpu"))
