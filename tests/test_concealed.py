@@ -1154,10 +1154,14 @@ def test_segmentation_correlation_reads_shift_size_and_memory():
     moved = np.roll(np.roll(true, 2, axis=2), -1, axis=1)
     grown = true.copy()
     grown[2, 4:12, 7:17] = True
-    errors = module.moment_errors(moved, true)
+    raw = module.raw_moments  # the segmentation's masks' or coverage's raw moments, against the true masks
+    errors = module.moment_errors(raw(moved), true)
     np.testing.assert_allclose(errors, [[2.0, -1.0, 0.0]] * 3, atol=1e-12)
-    assert module.moment_errors(grown, true)[2, 2] == pytest.approx(np.sqrt(80 / 48) - 1)
-    assert module.moment_errors(np.zeros_like(true), true).shape == (0,)  # no frame with both
+    assert module.moment_errors(raw(grown), true)[2, 2] == pytest.approx(np.sqrt(80 / 48) - 1)
+    half = raw(grown) * 0.5  # a coverage of one half everywhere the mask is: the same centroid, half the area
+    np.testing.assert_allclose(module.moment_errors(half, grown)[:, :2], 0.0, atol=1e-12)
+    assert module.moment_errors(half, grown)[0, 2] == pytest.approx(np.sqrt(0.5) - 1)
+    assert module.moment_errors(raw(np.zeros_like(true)), true).shape == (0,)  # no frame with both
     t = np.arange(60.0)
     assert module.autocorrelation((-1.0) ** t, 1) < -0.95
     assert module.autocorrelation(np.sin(t / 20), 1) > 0.9
