@@ -26,6 +26,7 @@ import torch
 from torchfit.camera import Camera
 from torchfit.discover import _criterion
 from torchfit.discover_video import VideoProblem
+from torchfit.losses import central_moments, raw_from_central
 from torchfit.paper._recording import load_recording
 from torchfit.run import build_problem
 from torchfit.shape import load_shape
@@ -101,42 +102,33 @@ def with_masks(observation, masks: np.ndarray):
     return dataclasses.replace(observation, masks=masks, boxes=_boxes(masks), coverage_moments=raw_moments(masks))
 
 
-def central_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Area (T,), centroid (T, 2) and central second moments per unit area (T, 3) ``(mu20, mu11,
-    mu02)`` of (T, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` (NaN where the area is 0)."""
-    area = moments[:, 0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = moments[:, 1:3] / area[:, None]
-        second = moments[:, 3:6] / area[:, None] - np.stack((c[:, 0] ** 2, c[:, 0] * c[:, 1], c[:, 1] ** 2), -1)
-    return area, c, second
-
-
-def raw_of_central(area: np.ndarray, c: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """(T, 6) raw moments of :func:`central_moments`' area (T,), centroid (T, 2), second moments (T, 3)."""
-    per_area = second + np.stack((c[:, 0] ** 2, c[:, 0] * c[:, 1], c[:, 1] ** 2), -1)
-    return np.concatenate((area[:, None], area[:, None] * c, area[:, None] * per_area), -1)
+def both_frames(segmented: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """Indices of the frames where both (T, 6) raw moments are non-empty."""
+    return np.flatnonzero((segmented[:, 0] > 0) & (exact[:, 0] > 0))
 
 
 def error_moved(segmented: np.ndarray, exact: np.ndarray, order: np.ndarray) -> np.ndarray:
     """(T, 6) raw moments: the ``exact`` (T, 6) moments, each frame carrying the ``segmented``
     (T, 6) moments' error of the frame ``order`` names.
 
-    ``order``: (F,) a permutation of 0..F-1 over the F frames where both are non-empty (in frame
-    order): the k-th of them takes the error of the ``order[k]``-th. Frames where either is empty
-    keep the segmented moments. A frame's error is its area ratio, its centroid offset (pixels)
-    and its central second moments' offset relative to the exact ones' trace (the object's size
-    squared, which differs a little from frame to frame); the identity ``order`` gives
-    ``segmented`` back.
+    ``order``: (F,) a permutation of 0..F-1 over the F frames where both are non-empty
+    (:func:`both_frames`, in frame order): the k-th of them takes the error of the
+    ``order[k]``-th. Frames where either is empty keep the segmented moments. A frame's error is
+    its area ratio, its centroid offset (pixels) and its covariance's offset relative to the exact
+    one's trace (the object's size squared, which differs a little from frame to frame); the
+    identity ``order`` gives ``segmented`` back. Moments to and from area, centroid and covariance
+    by :func:`torchfit.losses.central_moments` and :func:`torchfit.losses.raw_from_central`.
     """
-    both = np.flatnonzero((segmented[:, 0] > 0) & (exact[:, 0] > 0))
+    both = both_frames(segmented, exact)
     if sorted(np.asarray(order).tolist()) != list(range(len(both))):
         raise ValueError(f"order must permute the {len(both)} frames where both are non-empty, got {order}")
-    a_s, c_s, s_s = central_moments(segmented[both])
-    a_e, c_e, s_e = central_moments(exact[both])
-    size = (s_e[:, 0] + s_e[:, 2])[:, None]
-    spread = (s_s - s_e) / size
+    a_s, c_s, s_s = central_moments(torch.as_tensor(segmented[both], dtype=torch.float64))
+    a_e, c_e, s_e = central_moments(torch.as_tensor(exact[both], dtype=torch.float64))
+    size = s_e.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None]
+    order = torch.as_tensor(order)
+    moved = raw_from_central(a_e * (a_s / a_e)[order], c_e + (c_s - c_e)[order], s_e + ((s_s - s_e) / size)[order] * size)
     out = np.asarray(segmented, np.float64).copy()
-    out[both] = raw_of_central(a_e * (a_s / a_e)[order], c_e + (c_s - c_e)[order], s_e + spread[order] * size)
+    out[both] = moved.numpy()
     return out
 
 
@@ -146,8 +138,7 @@ def with_error_shuffled(observation, masks: np.ndarray, seed: int | tuple[int, .
     permutation drawn from ``seed``, numpy's seed sequence): the error's size, spread, tails and
     mean stay, its order in time and its tie to the throw go."""
     exact, seg = raw_moments(masks), observation.coverage_moments
-    count = int(((seg[:, 0] > 0) & (exact[:, 0] > 0)).sum())
-    order = np.random.default_rng(seed).permutation(count)
+    order = np.random.default_rng(seed).permutation(len(both_frames(seg, exact)))
     return dataclasses.replace(observation, coverage_moments=error_moved(seg, exact, order))
 
 
