@@ -190,6 +190,13 @@ class SegmentationSettings:
             ramp. Unclipped within a band of 8, discover still named the same wrong clock on a
             concealed ball as a clipped band of 6, so the clip stays on
             (experiments/discover/HISTORY.md, *The clip that made mass*).
+        well_posed_grey: the per-pixel 2-unknown fit (coverage and shading) is trusted where the
+            background's colour off the albedo's direction, ``|B| sin(angle(A, B))``, exceeds
+            this many grey levels (luma/chroma); elsewhere the coverage falls back to
+            ``|D| / contrast`` and the local shading takes no support from the pixel. At 10 a
+            shaded face over the concealed recordings' dark grass (``|B| sin`` ~7-9) took its
+            shading from the lit face beside it and was lost (its coverage a third;
+            experiments/discover/HISTORY.md, *Sixtieth session*).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
@@ -216,6 +223,7 @@ class SegmentationSettings:
     coverage_near_px: int | str = "auto"
     coverage_band: str = "steps"
     coverage_clip: bool = True
+    well_posed_grey: float = 10.0
     morph_radius: int = 1
     min_area: int = 6
     second_component_frac: float = 0.5
@@ -232,7 +240,7 @@ class SegmentationSettings:
             )
         if self.transfer not in TRANSFERS:
             raise ValueError(f"transfer must be one of {TRANSFERS}, got {self.transfer!r}")
-        for name in ("noise_sigmas", "alpha_smoothing", "shading_radius", "chroma_weight"):
+        for name in ("noise_sigmas", "alpha_smoothing", "shading_radius", "chroma_weight", "well_posed_grey"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not 0.0 < self.alpha_threshold < 1.0:
@@ -1452,8 +1460,8 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
         albedo = _albedo(colours, _two_unknown(diff[core], background[rows, cols], albedo)[0])
 
     terms = _background_terms(background, albedo)  # the same for every frame
-    # |B| sin(angle(A, B)) > 10 grey levels, else the coverage falls back to |D| / contrast
-    well_posed = terms[2] > 100.0
+    # |B| sin(angle(A, B)) > well_posed_grey, else the coverage falls back to |D| / contrast
+    well_posed = terms[2] > settings.well_posed_grey**2
 
     region = _morph(seeds, "dilation", 2 * settings.morph_radius + 1)
     masks = np.zeros_like(seeds)
