@@ -811,6 +811,8 @@ def test_recording_exposure_takes_a_guessed_fraction_and_keeps_the_sub_frames():
     camera = conc.recording_exposure(truth, 0.5, taps=0)  # --exposure-taps 0: as a camera's
     assert (camera.fraction, camera.taps) == (0.5, 0)
     assert conc.segmentation_suffix(1, True, 0.5, None, None, True, exposure_taps=0) == "_albedo1_exposure0.5_taps0_fitted"
+    assert (conc.segmentation_suffix(1, True, 0.5, None, None, True, exposure_taps=0, well_posed_grey=5.0)
+            == "_albedo1_exposure0.5_taps0_fitted_grey5")
 
 
 def test_results_folders_carry_their_settings_on_every_set():
