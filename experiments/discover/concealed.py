@@ -1077,7 +1077,8 @@ if __name__ == "__main__":
         sys.exit(print(text))
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != "auto"
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
-                            or args.linear_shading or args.well_posed_grey is not None or args.speed_noise or args.heldout_margin is not None
+                            or args.linear_shading or args.well_posed_grey is not None or args.speed_noise
+                            or args.heldout_margin is not None
                             or args.robust is not None or args.backcast or args.search_final is not None):
         if variant:
             suffix = variant
@@ -1173,8 +1174,8 @@ if __name__ == "__main__":
         ap.error("--unclipped and --motion-band need --exposure (only the exposure reads the coverage)")
     if args.linear_shading and (args.true_masks or args.shipped or args.shutter):
         ap.error("--linear-shading is a segmentation setting: not with --true-masks, --shipped or --shutter")
-    if args.well_posed_grey is not None and (args.true_masks or args.shipped or args.shutter
-                                             or not (math.isfinite(args.well_posed_grey) and args.well_posed_grey >= 0)):
+    grey_ok = args.well_posed_grey is None or (math.isfinite(args.well_posed_grey) and args.well_posed_grey >= 0)
+    if args.well_posed_grey is not None and (args.true_masks or args.shipped or args.shutter or not grey_ok):
         ap.error(f"--well-posed-grey is a segmentation setting, grey levels >= 0 (not with --true-masks, --shipped "
                  f"or --shutter), got {args.well_posed_grey}")
     if args.exposure_fraction is not None and not (args.exposure and 0 <= args.exposure_fraction <= 1):
