@@ -390,7 +390,7 @@ def test_a_shaded_face_over_dark_grass_is_kept(grey, keeps_the_face):
     """Over a background whose colour off the albedo's direction is ~7 grey levels the per-pixel
     fit still reads the shaded face (its noise is 2 / 7 of a coverage per pixel, and the local
     shading averages it): trusted above 5 grey levels. Trusted only above 10, the
-    face took its shading from the lit face beside it, read a third covered and was lost: the
+    face took its shading from the lit face beside it, read too little covered and was lost: the
     coverage's centroid 5 px high and its area half the truth's, as on the concealed recordings'
     dark faces over dark grass (experiments/discover/HISTORY.md, *Sixtieth session*)."""
     frames, coverage = _shaded_bar_over_dark_green()

@@ -195,7 +195,7 @@ class SegmentationSettings:
             this many grey levels (luma/chroma); elsewhere the coverage falls back to
             ``|D| / contrast`` and the local shading takes no support from the pixel. At 10 a
             shaded face over the concealed recordings' dark grass (``|B| sin`` ~7-9) took its
-            shading from the lit face beside it and was lost (its coverage a third). At 5 the
+            shading from the lit face beside it and was lost (read a fifth to a half covered). At 5 the
             coverage's far-off frames on those recordings are fewer, but discover named 29 of 45
             hidden effects on three concealed sets against 31 at 10, so 10 stays the default
             (experiments/discover/HISTORY.md, *Sixtieth session*).
