@@ -326,21 +326,25 @@ def test_auto_transfer_decodes_what_the_file_names(tmp_path):
     assert "sRGB chunk" in load_observation(tmp_path / "tagged_True", fps=30.0).transfer_note
 
 
-def _two_face_scene(frames=15, height=60, width=200, seed=0):
-    """A bar with a lit and a shaded face moving over grey, then over a dark green background.
+def _shaded_bar_scene(frames=15, height=60, width=200, grey_half=True, texture=6.0, seed=0):
+    """A wooden bar with a lit face and a shaded one (0.45 of the lit one's light) moving right
+    over a dark green background (``|B|`` ~45 grey levels, ``|B| sin(angle(A, B))`` ~7, the
+    concealed recordings' dark grass), its left half grey when ``grey_half``, with a Gaussian
+    ``texture`` (grey levels; none at 0).
 
-    Returns (T, H, W, 3) uint8 BGR frames and (T, H, W) true masks (pixel centre inside).
-    Over the dark half ``|B|`` is ~45 grey levels, ``|B| sin(angle(A, B))`` ~7.
+    Returns (T, H, W, 3) uint8 BGR frames and (T, H, W) exact coverage.
     """
     rng = np.random.default_rng(seed)
     sub = 4  # supersampling of the partial pixel coverage
     yy, xx = (np.mgrid[:height * sub, :width * sub] + 0.5) / sub - 0.5
     background = np.empty((height, width, 3))
-    background[:, : width // 2] = (110, 120, 125)
-    background[:, width // 2:] = (22, 38, 26)
-    background += rng.normal(0, 6, background.shape)  # texture
+    background[:] = (22, 38, 26)
+    if grey_half:
+        background[:, : width // 2] = (110, 120, 125)
+    if texture > 0:
+        background += rng.normal(0, texture, background.shape)
     albedo = np.array([82.0, 115.0, 148.0])  # wood, BGR
-    images, truths = [], []
+    images, coverages = [], []
     for t in range(frames):
         x0 = 5 + 10 * t
         inside = (xx >= x0) & (xx < x0 + 40) & (yy >= 18.3) & (yy < 40.6)
@@ -349,40 +353,20 @@ def _two_face_scene(frames=15, height=60, width=200, seed=0):
         colour = (inside * shade).reshape(height, sub, width, sub).mean((1, 3))[..., None] * albedo
         image = background * (1 - coverage[..., None]) + colour + rng.normal(0, 2, background.shape)
         images.append(np.clip(np.round(image), 0, 255).astype(np.uint8))
-        truths.append(coverage >= 0.5)
-    return np.stack(images), np.stack(truths)
+        coverages.append(coverage)
+    return np.stack(images), np.stack(coverages)
 
 
 def test_local_shading_finds_a_shaded_face_over_a_dark_background():
     """Where the per-pixel fit is not trusted, the local shading still reads the face. The dark half
     (|B| sin(angle(A, B)) ~7 grey levels, textured) is trusted per pixel above 5 grey levels;
     trusted only above 10, the scene exercises the ill-posed case."""
-    frames, truth = _two_face_scene()
+    frames, coverage = _shaded_bar_scene()
+    truth = coverage >= 0.5  # pixel centre inside
     local = _segment(frames, SegmentationSettings(well_posed_grey=10.0))["masks"]
     per_pixel = _segment(frames, SegmentationSettings(shading_radius=0.0, well_posed_grey=10.0))["masks"]
     assert iou(local, truth).min() >= 0.93
     assert iou(per_pixel, truth).min() < 0.7  # the scene exercises the ill-posed case
-
-
-def _shaded_bar_over_dark_green(frames=12, height=60, width=160, seed=0):
-    """A wooden bar, its lower face in shade (0.45 of the lit one's light), moving over a plain dark
-    green background where ``|B| sin(angle(A, B))`` is ~7 grey levels (the concealed recordings'
-    dark grass). Returns (T, H, W, 3) uint8 BGR frames and (T, H, W) exact coverage."""
-    rng = np.random.default_rng(seed)
-    sub = 4  # supersampling of the partial pixel coverage
-    yy, xx = (np.mgrid[:height * sub, :width * sub] + 0.5) / sub - 0.5
-    background = np.broadcast_to(np.array([22.0, 38.0, 26.0]), (height, width, 3))
-    albedo = np.array([82.0, 115.0, 148.0])  # wood, BGR
-    images, coverages = [], []
-    for t in range(frames):
-        inside = (xx >= 5 + 10 * t) & (xx < 45 + 10 * t) & (yy >= 18.3) & (yy < 40.6)
-        shade = np.where(yy < 29.4, 1.0, 0.45)
-        coverage = inside.reshape(height, sub, width, sub).mean((1, 3))
-        colour = (inside * shade).reshape(height, sub, width, sub).mean((1, 3))[..., None] * albedo
-        image = background * (1 - coverage[..., None]) + colour + rng.normal(0, 2, background.shape)
-        images.append(np.clip(np.round(image), 0, 255).astype(np.uint8))
-        coverages.append(coverage)
-    return np.stack(images), np.stack(coverages)
 
 
 @pytest.mark.parametrize("grey, keeps_the_face", [(5.0, True), (10.0, False)])
@@ -393,7 +377,7 @@ def test_a_shaded_face_over_dark_grass_is_kept(grey, keeps_the_face):
     face took its shading from the lit face beside it, read too little covered and was lost: the
     coverage's centroid 5 px high and its area half the truth's, as on the concealed recordings'
     dark faces over dark grass (experiments/discover/HISTORY.md, *Sixtieth session*)."""
-    frames, coverage = _shaded_bar_over_dark_green()
+    frames, coverage = _shaded_bar_scene(frames=12, width=160, grey_half=False, texture=0.0)
     read = _segment(frames, SegmentationSettings(well_posed_grey=grey))["coverage_moments"]
     exact = raw_moments(coverage)
     centroid_y = read[:, 2] / read[:, 0] - exact[:, 2] / exact[:, 0]  # (T,) px

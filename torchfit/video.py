@@ -195,10 +195,10 @@ class SegmentationSettings:
             this many grey levels (luma/chroma); elsewhere the coverage falls back to
             ``|D| / contrast`` and the local shading takes no support from the pixel. At 10 a
             shaded face over the concealed recordings' dark grass (``|B| sin`` ~7-9) took its
-            shading from the lit face beside it and was lost (read a fifth to a half covered). At 5 the
-            coverage's far-off frames on those recordings are fewer, but discover named 29 of 45
-            hidden effects on three concealed sets against 31 at 10, so 10 stays the default
-            (experiments/discover/HISTORY.md, *Sixtieth session*).
+            shading from the lit face beside it and was lost (read a fifth to a half covered).
+            At 5 the coverage's far-off frames on those recordings are fewer, but discover named
+            29 of 45 hidden effects on three concealed sets against 31 at 10, so 10 stays the
+            default (experiments/discover/HISTORY.md, *Sixtieth session*).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
