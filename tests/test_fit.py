@@ -189,6 +189,7 @@ def test_segmentation_settings_come_from_the_config():
     from omegaconf import OmegaConf
 
     from torchfit.run import ConfigError, _segmentation_settings
+    from torchfit.video import SegmentationSettings
 
     settings = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "bt709"}))
     assert settings.transfer == "bt709" and settings.method == "median"
@@ -216,6 +217,15 @@ def test_segmentation_settings_come_from_the_config():
         with pytest.raises(ConfigError, match=f"data.segmentation: coverage_near_px must be a whole number of steps "
                                               f">= 1 or \"auto\", got {bad!r}"):
             _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "coverage_near_px": bad}))
+    assert _segmentation_settings(default.segmentation).well_posed_grey == SegmentationSettings().well_posed_grey
+    grey = _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": 5}))
+    assert grey.well_posed_grey == 5.0
+    for bad in ("dark", True):
+        with pytest.raises(ConfigError, match=f"data.segmentation: well_posed_grey must be a number of grey levels "
+                                              f">= 0, got {bad!r}"):
+            _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": bad}))
+    with pytest.raises(ConfigError, match="data.segmentation: well_posed_grey must be >= 0, got -1.0"):
+        _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": -1}))
 
 
 def test_the_log_says_how_pixel_values_were_read():

@@ -76,16 +76,20 @@ def _band(value):
 
 
 def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:
-    """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px, stabilise) as
-    :class:`SegmentationSettings`; ``albedo_passes: null`` is one pass where discover compares the
-    soft coverage (``coverage``: the motion blur modelled, the path measured with it) and none
-    elsewhere; ``coverage_near_px`` absent or null is the settings' own band."""
-    passes, band = node.get("albedo_passes"), node.get("coverage_near_px")
+    """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px, stabilise,
+    well_posed_grey) as :class:`SegmentationSettings`; ``albedo_passes: null`` is one pass where
+    discover compares the soft coverage (``coverage``: the motion blur modelled, the path measured
+    with it) and none elsewhere; ``coverage_near_px`` or ``well_posed_grey`` absent or null is the
+    settings' own."""
+    passes, band, grey = node.get("albedo_passes"), node.get("coverage_near_px"), node.get("well_posed_grey")
+    if grey is not None and (isinstance(grey, bool) or not isinstance(grey, (int, float))):
+        raise ConfigError(f"data.segmentation: well_posed_grey must be a number of grey levels >= 0, got {grey!r}")
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
                                     albedo_passes=(1 if coverage else 0) if passes is None else int(passes),
                                     stabilise=node.get("stabilise", "auto"),
-                                    **({} if band is None else {"coverage_near_px": _band(band)}))
+                                    **({} if band is None else {"coverage_near_px": _band(band)}),
+                                    **({} if grey is None else {"well_posed_grey": float(grey)}))
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 
