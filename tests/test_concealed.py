@@ -1291,3 +1291,26 @@ def test_error_moved_keeps_each_frames_error_and_moves_it_to_another_frame():
     np.testing.assert_array_equal(moved[4], seg[4])
     with pytest.raises(ValueError, match="permute the 4 frames"):
         tm.error_moved(seg, exact, np.array([0, 1, 1, 2]))
+
+
+def test_exact_centroids_keep_the_area_and_spread_and_touch_only_their_frames():
+    """centroid_oracle.with_exact_centroids: the named frames take the exact moments' centroid and
+    keep their own area and covariance; the other frames and an empty range are left as they are."""
+    import numpy as np
+    import torch
+
+    from torchfit.losses import central_moments, raw_from_central
+
+    sys.path.insert(0, str(CONCEALED.parent))
+    oracle = _load("centroid_oracle", CONCEALED.parent / "centroid_oracle.py")
+    area = torch.tensor([100.0, 120.0, 90.0])
+    cov = torch.tensor([[[30.0, 4.0], [4.0, 20.0]]] * 3, dtype=torch.float64)
+    seen = raw_from_central(area.double(), torch.tensor([[10.0, 20.0], [11.0, 22.0], [12.0, 24.0]]).double(), cov).numpy()
+    exact = raw_from_central(torch.tensor([95.0, 118.0, 91.0]).double(),
+                             torch.tensor([[10.5, 19.0], [11.5, 21.5], [12.5, 23.0]]).double(), 0.5 * cov).numpy()
+    moved = oracle.with_exact_centroids(seen, exact, 1, 1)
+    a, c, s = central_moments(torch.as_tensor(moved))
+    assert torch.allclose(a, area.double()) and torch.allclose(s, cov)
+    assert torch.allclose(c[1], torch.tensor([11.5, 21.5]).double())
+    assert np.array_equal(moved[[0, 2]], seen[[0, 2]])
+    assert np.array_equal(oracle.with_exact_centroids(seen, exact, 3, 2), seen)
