@@ -65,6 +65,7 @@ from segmentation_error import frame_errors, mask_centroids, measure, segment_wa
 from true_masks import load_problem, problem_of, recording_parts, subframe_times, with_masks
 
 import torchfit.discover_video as dv
+from torchfit.losses import raw_from_central
 from torchfit.rotation import quat_to_matrix, rotation_angle
 from torchfit.search import Exposure, SearchSettings, candidate_losses
 from torchfit.search import fit as search_fit
@@ -522,13 +523,6 @@ def codec(fresh: int, names: list[str]) -> dict:
     return _remade(fresh, names, CODECS, _codec_row)
 
 
-def _raw(moments: tuple) -> torch.Tensor:
-    """(N, 6) raw moments ``(m00, m10, m01, m20, m11, m02)`` from (area, centroid, covariance)."""
-    area, (cu, cv), cov = moments[0], moments[1].unbind(-1), moments[2]
-    return torch.stack((area, area * cu, area * cv, area * (cov[:, 0, 0] + cu * cu),
-                        area * (cov[:, 0, 1] + cu * cv), area * (cov[:, 1, 1] + cv * cv)), -1)
-
-
 def _stats(values: np.ndarray) -> dict:
     """Mean, spread about it, frame-to-frame jitter (second differences / sqrt 6) and the spread of
     the 7-frame moving average (the slow part) of (T,) per-frame values."""
@@ -577,7 +571,7 @@ def _exact_moments(truth: dict, shape, camera) -> tuple[tuple, torch.Tensor]:
                                  torch.as_tensor(np.array(per_frame["position"])))
         subs = silhouette_moments(mesh, camera, torch.as_tensor(sub_rotation.reshape(-1, 3, 3)),
                                   torch.as_tensor(sub_position.reshape(-1, 3)))
-    return mid, _raw(subs).reshape(frames, subframes, 6).mean(1)
+    return mid, raw_from_central(*subs).reshape(frames, subframes, 6).mean(1)
 
 
 def blur(folder: Path, near_px: str = "4", settings=None) -> dict:
@@ -912,7 +906,7 @@ def blur_estimate(folder: Path, settings=None, bins: int = 8) -> dict:
     truth, shape, camera = recording_parts(folder)
     own = recording_exposure(truth)
     mid, averaged = _exact_moments(truth, shape, camera)
-    mid, averaged = _raw(mid).numpy(), averaged.numpy()
+    mid, averaged = raw_from_central(*mid).numpy(), averaged.numpy()
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
     cover = _coverage_within(kept, masks, (settings or SegmentationSettings()).band_steps(*masks.shape[1:]))
     mask = raw_moments(masks)
@@ -998,7 +992,7 @@ def blur_speed(folder: Path, settings=None, bins: int = 4) -> dict:
     truth, shape, camera = recording_parts(folder)
     own = recording_exposure(truth)
     mid, averaged = _exact_moments(truth, shape, camera)
-    mid, averaged = _raw(mid).numpy(), averaged.numpy()
+    mid, averaged = raw_from_central(*mid).numpy(), averaged.numpy()
     masks, kept, _ = segment_watching(folder, "_local_shading_coverage", lambda coverage: coverage, settings)
     used = _whole(masks)
     used[[0, -1]] = False
@@ -1123,7 +1117,7 @@ def mixed_moments(seen: np.ndarray, exact: np.ndarray, parts: tuple[str, ...]) -
         error = truth[2] - own[2]  # (T, 2, 2)
         spread = error.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(2, dtype=torch.float64)
         chosen[2] = own[2] + ("spread" in parts) * spread + ("stretch" in parts) * (error - spread)
-    mixed = _raw(tuple(chosen)).numpy()
+    mixed = raw_from_central(*chosen).numpy()
     mixed[empty.numpy()] = np.asarray(seen)[empty.numpy()]
     return mixed
 
