@@ -1150,6 +1150,7 @@ def test_segmentation_correlation_reads_shift_size_and_memory():
     in centroid and 0 in scale, a larger one a positive scale error; an alternating error has
     autocorrelation near -1 at lag 1 and a slow one near +1."""
     pytest.importorskip("cv2")
+    sys.path.insert(0, str(CONCEALED.parent))  # segmentation_correlation.py imports true_masks from its folder
     module = _load("segmentation_correlation", CONCEALED.parent / "segmentation_correlation.py")
     true = np.zeros((3, 20, 30), bool)
     true[:, 5:11, 8:16] = True

@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from true_masks import both_frames
 
 from torchfit.video import SegmentationSettings, load_observation, raw_moments
 
@@ -45,11 +46,11 @@ def moment_errors(segmented: np.ndarray, true: np.ndarray) -> np.ndarray:
     segmentation's masks' or coverage's) against those of the (T, H, W) bool true masks, over the
     F frames where both are non-empty ((0,) when there is none); the true masks' moments from the
     segmentation's own :func:`torchfit.video.raw_moments`."""
-    seg, ref = segmented, raw_moments(true)
-    both = (seg[:, 0] > 0) & (ref[:, 0] > 0)
-    if not both.any():
+    ref = raw_moments(true)
+    both = both_frames(segmented, ref)
+    if not len(both):
         return np.empty(0)
-    seg, ref = seg[both], ref[both]
+    seg, ref = segmented[both], ref[both]
     return np.stack((seg[:, 1] / seg[:, 0] - ref[:, 1] / ref[:, 0], seg[:, 2] / seg[:, 0] - ref[:, 2] / ref[:, 0],
                      np.sqrt(seg[:, 0] / ref[:, 0]) - 1.0), axis=-1)
 
