@@ -56,8 +56,6 @@ def dark_frames(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """The recording ``folder``'s (T, 2) coverage centroid errors (px, about their median) and (T,)
     share of each exact outline band (4 px either side) over background the per-pixel fit does not
     trust (read from the segmentation's own :func:`torchfit.video._background_terms`)."""
-    _, _, camera = recording_parts(folder)
-    settings = SegmentationSettings(albedo_passes=1)
     kept = []
     original = video._background_terms
 
@@ -69,12 +67,11 @@ def dark_frames(folder: Path) -> tuple[np.ndarray, np.ndarray]:
 
     video._background_terms = watching
     try:
-        observation = load_observation(str(folder / "video.mp4"), camera=camera, settings=settings)
+        error = frame_errors(folder)["coverage"]
     finally:
         video._background_terms = original
-    ill = kept[-1] <= settings.well_posed_grey**2
+    ill = kept[-1] <= SegmentationSettings().well_posed_grey**2
     masks = np.load(folder / "masks.npz")["masks"].astype(bool)
-    error = centroids(np.asarray(observation.coverage_moments)) - centroids(raw_moments(masks))
     kernel = np.ones((9, 9), np.uint8)
     share = np.array([ill[(cv2.dilate(m.astype(np.uint8), kernel) > 0) & (cv2.erode(m.astype(np.uint8), kernel) == 0)].mean()
                       for m in masks])
