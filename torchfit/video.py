@@ -199,6 +199,14 @@ class SegmentationSettings:
             At 5 the coverage's far-off frames on those recordings are fewer, but discover named
             29 of 45 hidden effects on three concealed sets against 31 at 10, so 10 stays the
             default (experiments/discover/HISTORY.md, *Sixtieth session*).
+        interior_shading: where the per-pixel fit is not trusted (the background too dark or
+            too like the object, ``well_posed_grey``), the local shading also takes support from
+            the object's own interior: pixels of the detection (the seed) further inside it than
+            the coverage band's steps (:meth:`band_steps`) and half a frame's travel along the
+            motion (:func:`motion_band`, the seed's travel), so beyond any blur's reach, taken as
+            fully covered: their shading is ``I . A``. Without it the shading of an edge over a dark background is
+            borrowed from trusted pixels up to a wide window away (often another face), or the
+            coverage falls back to ``|D| / contrast``.
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least
@@ -226,6 +234,7 @@ class SegmentationSettings:
     coverage_band: str = "steps"
     coverage_clip: bool = True
     well_posed_grey: float = 10.0
+    interior_shading: bool = False
     morph_radius: int = 1
     min_area: int = 6
     second_component_frac: float = 0.5
@@ -1466,6 +1475,8 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
     well_posed = terms[2] > settings.well_posed_grey**2
 
     region = _morph(seeds, "dilation", 2 * settings.morph_radius + 1)
+    steps = settings.band_steps(*frames.shape[1:3])
+    seed_velocity = mask_velocity(seeds) if settings.interior_shading else None
     masks = np.zeros_like(seeds)
     covers = {}  # frame -> (H, W) coverage before smoothing and threshold
     for t in range(len(frames)):
@@ -1476,9 +1487,12 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
         fallback = np.where(well_posed, coverage, magnitude[t] / max(contrast, 1e-6))
         if settings.shading_radius > 0:
             weight = well_posed & region[t] & (coverage > 0.05)
-            coverage = _local_shading_coverage(diff[t], background, albedo, coverage, shaded,
-                                               weight, fallback, settings.shading_radius,
-                                               settings.shading_fit == "linear")
+            if settings.interior_shading:  # the seed's inside, beyond any blur's reach: a = 1, u = s = I.A
+                inner = ~motion_band(~seeds[t], steps, seed_velocity[t]) & ~well_posed
+                coverage, shaded = np.where(inner, 1.0, coverage), np.where(inner, frames[t] @ albedo, shaded)
+                weight |= inner
+            coverage = _local_shading_coverage(diff[t], background, albedo, coverage, shaded, weight, fallback,
+                                               settings.shading_radius, settings.shading_fit == "linear")
         else:
             coverage = fallback
         covers[t] = coverage
@@ -1491,7 +1505,6 @@ def _segment(frames: np.ndarray, settings: SegmentationSettings,
             masks[t] = ndimage.binary_fill_holes(_largest(masks[t]))
     velocity = mask_velocity(masks) if settings.coverage_band == "motion" else np.zeros((len(frames), 2))
     cover_moments = np.zeros((len(frames), 6))
-    steps = settings.band_steps(*frames.shape[1:3])
     for t in range(len(frames)):
         if masks[t].any():
             near = motion_band(masks[t], steps, velocity[t])

@@ -94,8 +94,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
             coverage_near_px: int | None = None, coverage_clip: bool | None = None,
             fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
             baseline_starts: int = 1, exposure_taps: int | None = None, coverage_band: str | None = None,
-            shading_fit: str | None = None, well_posed_grey: float | None = None, speed_noise: bool = False,
-            heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
+            shading_fit: str | None = None, well_posed_grey: float | None = None,
+            interior_shading: bool | None = None, speed_noise: bool = False, heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
             backcast: bool = False, search_final: int | None = None,
             jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
             jump_neighbours: int = 0, jump_refined: bool = False, shuffle_error: int | None = None) -> dict:
@@ -110,7 +110,8 @@ def run_one(folder: Path, out: Path, *, true_masks: bool = False, chroma_weight:
     changes = {k: v for k, v in (("chroma_weight", chroma_weight), ("albedo_passes", albedo_passes),
                                  ("transfer", transfer), ("coverage_near_px", coverage_near_px),
                                  ("coverage_clip", coverage_clip), ("coverage_band", coverage_band),
-                                 ("shading_fit", shading_fit), ("well_posed_grey", well_posed_grey)) if v is not None}
+                                 ("shading_fit", shading_fit), ("well_posed_grey", well_posed_grey),
+                                 ("interior_shading", interior_shading)) if v is not None}
     settings = SegmentationSettings(**changes) if changes else None
     observation, problem, span = load_problem(folder, shape, camera, true_masks, settings)
     if shuffle_error is not None:
@@ -193,12 +194,15 @@ def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_frac
                         coverage_near_px: int | None, coverage_clip: bool | None = None,
                         fit_exposure: bool = False, point_spread: tuple[float, float] | None = None,
                         exposure_taps: int | None = None, coverage_band: str | None = None,
-                        shading_fit: str | None = None, well_posed_grey: float | None = None) -> str:
+                        shading_fit: str | None = None, well_posed_grey: float | None = None,
+                        interior_shading: bool | None = None) -> str:
     """The results folder's suffix of the albedo pass, the exposure (given or fitted from the
     fraction), a fitted point spread (``_spread`` without a prior, ``_spread<M>pm<S>`` with the
     prior ``M ± S`` px^2), the coverage band, its sweep along the motion (``_motionband``), the
     coverage's clip, the local-linear shading (``_linshade``) and the per-pixel fit's trust
-    (``_grey<G>``, ``SegmentationSettings.well_posed_grey``) (empty for each left at its default)."""
+    (``_grey<G>``, ``SegmentationSettings.well_posed_grey``) and the shading's support from the
+    object's interior (``_interior``, ``SegmentationSettings.interior_shading``) (empty for each
+    left at its default)."""
     return ((f"_albedo{albedo_passes}" if albedo_passes is not None else "")
             + (exposure_suffix(exposure_fraction, exposure_taps) if exposure else "")
             + ("_fitted" if fit_exposure else "")
@@ -208,7 +212,8 @@ def segmentation_suffix(albedo_passes: int | None, exposure: bool, exposure_frac
             + ("_motionband" if coverage_band == "motion" else "")
             + ("_unclipped" if coverage_clip is False else "")
             + ("_linshade" if shading_fit == "linear" else "")
-            + (f"_grey{well_posed_grey:g}" if well_posed_grey is not None else ""))
+            + (f"_grey{well_posed_grey:g}" if well_posed_grey is not None else "")
+            + ("_interior" if interior_shading else ""))
 
 
 def _aligned(folder: Path, fitted: list[float], true: list[float]) -> list[float]:
@@ -859,8 +864,8 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
          coverage_near_px: int | None = None, coverage_clip: bool | None = None, fit_exposure: bool = False,
          point_spread: tuple[float, float] | None = None, baseline_starts: int = 1,
          exposure_taps: int | None = None, coverage_band: str | None = None,
-         shading_fit: str | None = None, well_posed_grey: float | None = None, speed_noise: bool = False,
-         heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
+         shading_fit: str | None = None, well_posed_grey: float | None = None,
+         interior_shading: bool | None = None, speed_noise: bool = False, heldout_margin: float | None = None, robust: float | None = None, declare_lens: bool = False,
          backcast: bool = False,
          search_final: int | None = None, scale: int = 1, fps_scale: Fraction = Fraction(1),
          jump_sigmas: float | None = JUMP_SIGMAS, jump_one_at_a_time: bool = False,
@@ -871,7 +876,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
     variant = recordings.name.removeprefix(fresh_folder(fresh).name)
     settings = (segmentation_suffix(albedo_passes, exposure, exposure_fraction, coverage_near_px,
                                     coverage_clip, fit_exposure, point_spread, exposure_taps,
-                                    coverage_band, shading_fit, well_posed_grey)
+                                    coverage_band, shading_fit, well_posed_grey, interior_shading)
                 + "".join(f"_with_{name}" for name in extra)
                 + (f"_starts{baseline_starts}" if baseline_starts > 1 else "")
                 + ("_speednoise" if speed_noise else "")
@@ -909,6 +914,7 @@ def main(names: list[str], *, true_masks: bool = False, shipped: bool = False, f
                           coverage_near_px=coverage_near_px, coverage_clip=coverage_clip, fit_exposure=fit_exposure,
                           point_spread=point_spread, baseline_starts=baseline_starts, exposure_taps=exposure_taps,
                           coverage_band=coverage_band, shading_fit=shading_fit, well_posed_grey=well_posed_grey,
+                          interior_shading=interior_shading,
                           speed_noise=speed_noise,
                           heldout_margin=heldout_margin, robust=robust, declare_lens=declare_lens,
                           backcast=backcast, search_final=search_final, jump_sigmas=jump_sigmas,
@@ -974,6 +980,9 @@ if __name__ == "__main__":
     ap.add_argument("--well-posed-grey", type=float, metavar="G",
                     help="segment trusting the per-pixel fit where |B| sin(angle(A, B)) exceeds G grey levels "
                          "(SegmentationSettings.well_posed_grey; results/concealed..._grey<G>/)")
+    ap.add_argument("--interior-shading", action="store_true",
+                    help="segment with the shading also supported by the object's interior where the per-pixel "
+                         "fit is not trusted (SegmentationSettings.interior_shading; results/concealed..._interior/)")
     ap.add_argument("--fit-exposure", action="store_true",
                     help="with --exposure: fit the exposure's fraction as a nuisance of every model, from the "
                          "recording's own or --exposure-fraction (results/concealed..._exposure..._fitted/)")
@@ -1049,9 +1058,10 @@ if __name__ == "__main__":
     variant = (segmentation_suffix(args.albedo_passes, args.exposure, args.exposure_fraction, args.coverage_near_px,
                                    False if args.unclipped else None, args.fit_exposure, point_spread,
                                    args.exposure_taps, "motion" if args.motion_band else None,
-                                   "linear" if args.linear_shading else None, args.well_posed_grey)
+                                   "linear" if args.linear_shading else None, args.well_posed_grey,
+                                   True if args.interior_shading else None)
                if args.albedo_passes is not None or args.exposure or args.linear_shading
-               or args.well_posed_grey is not None else "")
+               or args.well_posed_grey is not None or args.interior_shading else "")
     variant += "_speednoise" if args.speed_noise else ""
     variant += heldout_suffix(args.heldout_margin) + robust_suffix(args.robust) + backcast_suffix(args.backcast)
     if not (math.isfinite(args.jump_sigmas) and args.jump_sigmas > 0):
@@ -1077,7 +1087,8 @@ if __name__ == "__main__":
         sys.exit(print(text))
     if args.scoreboard and (args.chroma_weight is not None or args.extra or args.edge_px != "auto"
                             or args.crf is not None or args.albedo_passes is not None or args.exposure
-                            or args.linear_shading or args.well_posed_grey is not None or args.speed_noise
+                            or args.linear_shading or args.well_posed_grey is not None or args.interior_shading
+                            or args.speed_noise
                             or args.heldout_margin is not None
                             or args.robust is not None or args.backcast or args.search_final is not None):
         if variant:
@@ -1095,6 +1106,7 @@ if __name__ == "__main__":
                               + (["local-linear shading"] if args.linear_shading else [])
                               + ([f"the per-pixel fit trusted above {args.well_posed_grey:g} grey levels"]
                                  if args.well_posed_grey is not None else [])
+                              + (["the shading supported by the interior"] if args.interior_shading else [])
                               + (["the exposure fitted"] if args.fit_exposure else [])
                               + ([] if point_spread is None else
                                  ["the point spread fitted" + ("" if math.isinf(point_spread[1]) else
@@ -1172,8 +1184,9 @@ if __name__ == "__main__":
         ap.error(f"--point-spread-prior needs a finite mean and a positive spread, got {args.point_spread_prior}")
     if (args.unclipped or args.motion_band) and not args.exposure:
         ap.error("--unclipped and --motion-band need --exposure (only the exposure reads the coverage)")
-    if args.linear_shading and (args.true_masks or args.shipped or args.shutter):
-        ap.error("--linear-shading is a segmentation setting: not with --true-masks, --shipped or --shutter")
+    for flag, given in (("--linear-shading", args.linear_shading), ("--interior-shading", args.interior_shading)):
+        if given and (args.true_masks or args.shipped or args.shutter):
+            ap.error(f"{flag} is a segmentation setting: not with --true-masks, --shipped or --shutter")
     grey_ok = args.well_posed_grey is None or (math.isfinite(args.well_posed_grey) and args.well_posed_grey >= 0)
     if args.well_posed_grey is not None and (args.true_masks or args.shipped or args.shutter or not grey_ok):
         ap.error(f"--well-posed-grey is a segmentation setting, grey levels >= 0 (not with --true-masks, --shipped "
@@ -1212,7 +1225,7 @@ if __name__ == "__main__":
          coverage_clip=False if args.unclipped else None, fit_exposure=args.fit_exposure,
          point_spread=point_spread, baseline_starts=args.baseline_starts, exposure_taps=args.exposure_taps,
          coverage_band="motion" if args.motion_band else None, shading_fit="linear" if args.linear_shading else None,
-         well_posed_grey=args.well_posed_grey,
+         well_posed_grey=args.well_posed_grey, interior_shading=True if args.interior_shading else None,
          speed_noise=args.speed_noise, heldout_margin=args.heldout_margin, robust=args.robust,
          declare_lens=args.declare_lens, backcast=args.backcast, search_final=args.search_final, scale=args.scale,
          fps_scale=args.fps_scale, jump_sigmas=jump_sigmas, jump_one_at_a_time=args.jump_one_at_a_time,
