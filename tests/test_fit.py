@@ -226,6 +226,13 @@ def test_segmentation_settings_come_from_the_config():
             _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": bad}))
     with pytest.raises(ConfigError, match="data.segmentation: well_posed_grey must be >= 0, got -1.0"):
         _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": -1}))
+    assert _segmentation_settings(default.segmentation).interior_shading == SegmentationSettings().interior_shading
+    for value in (True, False):
+        assert _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto",
+                                                        "interior_shading": value})).interior_shading is value
+    for bad in (1, "yes"):
+        with pytest.raises(ConfigError, match=f"data.segmentation: interior_shading must be true or false, got {bad!r}"):
+            _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "interior_shading": bad}))
 
 
 def test_the_log_says_how_pixel_values_were_read():

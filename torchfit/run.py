@@ -77,19 +77,23 @@ def _band(value):
 
 def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings:
     """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px, stabilise,
-    well_posed_grey) as :class:`SegmentationSettings`; ``albedo_passes: null`` is one pass where
-    discover compares the soft coverage (``coverage``: the motion blur modelled, the path measured
-    with it) and none elsewhere; ``coverage_near_px`` or ``well_posed_grey`` absent or null is the
-    settings' own."""
+    well_posed_grey, interior_shading) as :class:`SegmentationSettings`; ``albedo_passes: null`` is
+    one pass where discover compares the soft coverage (``coverage``: the motion blur modelled, the
+    path measured with it) and none elsewhere; ``coverage_near_px``, ``well_posed_grey`` or
+    ``interior_shading`` absent or null is the settings' own."""
     passes, band, grey = node.get("albedo_passes"), node.get("coverage_near_px"), node.get("well_posed_grey")
+    interior = node.get("interior_shading")
     if grey is not None and (isinstance(grey, bool) or not isinstance(grey, (int, float))):
         raise ConfigError(f"data.segmentation: well_posed_grey must be a number of grey levels >= 0, got {grey!r}")
+    if interior is not None and not isinstance(interior, bool):
+        raise ConfigError(f"data.segmentation: interior_shading must be true or false, got {interior!r}")
     try:
         return SegmentationSettings(method=str(node.method), transfer=str(node.transfer),
                                     albedo_passes=(1 if coverage else 0) if passes is None else int(passes),
                                     stabilise=node.get("stabilise", "auto"),
                                     **({} if band is None else {"coverage_near_px": _band(band)}),
-                                    **({} if grey is None else {"well_posed_grey": float(grey)}))
+                                    **({} if grey is None else {"well_posed_grey": float(grey)}),
+                                    **({} if interior is None else {"interior_shading": interior}))
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 
