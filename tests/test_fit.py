@@ -226,10 +226,14 @@ def test_segmentation_settings_come_from_the_config():
             _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": bad}))
     with pytest.raises(ConfigError, match="data.segmentation: well_posed_grey must be >= 0, got -1.0"):
         _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "well_posed_grey": -1}))
-    assert _segmentation_settings(default.segmentation).interior_shading == SegmentationSettings().interior_shading
+    # null: on where discover compares the soft coverage (the path measured), off elsewhere
+    assert _segmentation_settings(default.segmentation, coverage=True).interior_shading is True
+    assert _segmentation_settings(default.segmentation).interior_shading is False
     for value in (True, False):
-        assert _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto",
-                                                        "interior_shading": value})).interior_shading is value
+        for coverage in (True, False):
+            assert _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto",
+                                                            "interior_shading": value}),
+                                          coverage=coverage).interior_shading is value
     for bad in (1, "yes"):
         with pytest.raises(ConfigError, match=f"data.segmentation: interior_shading must be true or false, got {bad!r}"):
             _segmentation_settings(OmegaConf.create({"method": "median", "transfer": "auto", "interior_shading": bad}))

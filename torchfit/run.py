@@ -79,8 +79,9 @@ def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings
     """``data.segmentation`` (method, transfer, albedo_passes, coverage_near_px, stabilise,
     well_posed_grey, interior_shading) as :class:`SegmentationSettings`; ``albedo_passes: null`` is
     one pass where discover compares the soft coverage (``coverage``: the motion blur modelled, the
-    path measured with it) and none elsewhere; ``coverage_near_px``, ``well_posed_grey`` or
-    ``interior_shading`` absent or null is the settings' own."""
+    path measured with it) and none elsewhere; ``interior_shading: null`` likewise on where the
+    coverage is compared, off elsewhere; ``coverage_near_px`` or ``well_posed_grey`` absent or
+    null is the settings' own."""
     passes, band, grey = node.get("albedo_passes"), node.get("coverage_near_px"), node.get("well_posed_grey")
     interior = node.get("interior_shading")
     if grey is not None and (isinstance(grey, bool) or not isinstance(grey, (int, float))):
@@ -93,7 +94,7 @@ def _segmentation_settings(node, coverage: bool = False) -> SegmentationSettings
                                     stabilise=node.get("stabilise", "auto"),
                                     **({} if band is None else {"coverage_near_px": _band(band)}),
                                     **({} if grey is None else {"well_posed_grey": float(grey)}),
-                                    **({} if interior is None else {"interior_shading": interior}))
+                                    interior_shading=coverage if interior is None else interior)
     except (TypeError, ValueError) as err:
         raise ConfigError(f"data.segmentation: {err}") from None
 

@@ -206,7 +206,10 @@ class SegmentationSettings:
             motion (:func:`motion_band`, the seed's travel), so beyond any blur's reach, taken as
             fully covered: their shading is ``I . A``. Without it the shading of an edge over a dark background is
             borrowed from trusted pixels up to a wide window away (often another face), or the
-            coverage falls back to ``|D| / contrast``.
+            coverage falls back to ``|D| / contrast``. Off here; the command line's
+            ``data.segmentation.interior_shading: null`` turns it on where discover models the
+            motion blur, the path it was measured on (experiments/discover/HISTORY.md,
+            *Sixty-second session*: the setting, its gate, runs and verdict).
         morph_radius: radius (pixels) of the square opening / closing elements.
         min_area: smallest object area in pixels; smaller components are noise.
         second_component_frac: a frame whose second largest detection component is at least

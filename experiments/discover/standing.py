@@ -29,7 +29,9 @@ From the stored runs of one variant (no fitting), over the sets asked for:
     python experiments/discover/standing.py SUFFIX [--fresh K ...] [--each] [--beside OTHER]
 
 ``SUFFIX`` picks the results folders ``results/concealed<set><SUFFIX>``
-(``_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12`` for the default,
+(``_albedo1_exposure0.5_taps0_fitted_interior_huber2_backcast_final12_nb1`` for the default,
+``_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12_nb1`` for it without the interior shading (before the
+sixty-fourth session), ``_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12`` without the jump's neighbours,
 ``_albedo1_exposure0.5_taps0_fitted_huber2_backcast`` for it with the search's ``final=6`` of
 before 2026-11-29, ``_albedo1_exposure0.5_taps0_fitted_huber2`` without the backcast, '' for the masks); the seven
 blurred sets (the first and fresh 1-6) unless ``--fresh`` names others (0 the first); ``--each``
@@ -54,7 +56,7 @@ from concealed import grid_word, halved, limit_ratio, outcomes, row, score, verd
 from true_masks import fresh_folder  # noqa: E402
 
 SEVEN = (0, 1, 2, 3, 4, 5, 6)
-DEFAULT_SUFFIX = "_albedo1_exposure0.5_taps0_fitted_huber2_backcast_final12_nb1"  # a jump's neighbours left out since the 47th session
+DEFAULT_SUFFIX = "_albedo1_exposure0.5_taps0_fitted_interior_huber2_backcast_final12_nb1"  # the interior shading since the 64th session
 # the ratio's bins (true departure / the run's limit), each [low, high)
 BINS = ((0.0, 0.5), (0.5, 1.0), (1.0, 1.5), (1.5, 2.0), (2.0, float("inf")))
 
